@@ -1,0 +1,1 @@
+# bench package: `make bench` runs `python -m bench`

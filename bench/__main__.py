@@ -1,0 +1,38 @@
+"""`make bench`: run every bench/bench_*.py and print one table of measured vs target.
+
+Each module exposes ``run() -> list[Row]``. Speed and accuracy targets live here, not in
+timed tests.
+"""
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import sys
+import time
+import traceback
+
+import bench
+from bench.common import Row, print_table
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    names = sorted(m.name for m in pkgutil.iter_modules(bench.__path__) if m.name.startswith("bench_"))
+    if argv:
+        names = [n for n in names if any(a in n for a in argv)]
+    rows: list[Row] = []
+    for name in names:
+        t0 = time.perf_counter()
+        print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+        try:
+            rows.extend(importlib.import_module(f"bench.{name}").run())
+        except Exception:  # a broken bench must not hide the others' figures
+            traceback.print_exc()
+            rows.append(Row(name, "crashed", float("nan"), "", "", False))
+        print(f"[bench] {name} done in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    print_table(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,59 @@
+"""`calib`: the command line. A thin layer: every verb lives in calib/commands/<verb>.py
+with ``add_parser(subparsers)`` and ``run(args) -> int``; the real work is in the
+libraries (patterns, measure, fit).
+
+Errors from bad input are :class:`calib.errors.UserError`: one line on stderr, exit 2.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from calib import __version__
+from calib.errors import UserError
+
+#: Verbs in the order `calib --help` lists them.
+VERBS = ("pattern", "plan", "preview", "simulate", "measure", "fit", "batch", "compare",
+         "diagnose", "report", "export", "wizard", "demo")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="calib",
+        description="Calibrate extruder dynamics: print a test pattern, scan it, fit the physics.",
+        epilog="Run `calib VERB --help` for the options of each verb.")
+    parser.add_argument("--version", action="version", version=f"calib {__version__}")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    for verb in VERBS:
+        try:
+            mod = importlib.import_module(f"calib.commands.{verb}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"calib.commands.{verb}":
+                continue  # verb not built yet
+            raise
+        p = mod.add_parser(sub)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except UserError as exc:
+        print(f"calib {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"calib {args.verb}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""fit: the extruder physics (composable effects), the simulator, and the Bayesian fitters."""

@@ -1,0 +1,113 @@
+"""The widths table: what ``measure`` writes, what ``fit`` reads, what the renderer's truth holds.
+
+CSV columns (README "Widths CSV"):
+
+    track        int, the manifest's track id
+    s_mm         arc length along the track (mm)
+    x_mm, y_mm   bed position of the station (mm)
+    t_s          print time of the station, from the manifest's timeline (s)
+    width_mm     measured bead width (mm); 0 where the bead is missing
+    width_sd_mm  one-sigma uncertainty of width_mm (mm)
+    valid        1 if the sample may be fitted, 0 if not
+    flag         empty, or the reason the sample is not valid (crossing, label, blob,
+                 missing, glare, edge, ...)
+"""
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calib.errors import UserError
+from calib.fileio import atomic_write_text
+
+COLUMNS = ("track", "s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm", "valid", "flag")
+
+
+@dataclass
+class WidthTable:
+    track: np.ndarray
+    s_mm: np.ndarray
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    t_s: np.ndarray
+    width_mm: np.ndarray
+    width_sd_mm: np.ndarray
+    valid: np.ndarray
+    flag: np.ndarray = field(default=None)
+
+    def __post_init__(self):
+        n = len(self.track)
+        self.track = np.asarray(self.track, dtype=np.int64)
+        for name in ("s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm"):
+            setattr(self, name, np.asarray(getattr(self, name), dtype=float).reshape(n))
+        self.valid = np.asarray(self.valid).astype(bool).reshape(n)
+        if self.flag is None:
+            self.flag = np.array([""] * n, dtype=object)
+        else:
+            self.flag = np.asarray(self.flag, dtype=object).reshape(n)
+
+    def __len__(self) -> int:
+        return len(self.track)
+
+    def subset(self, mask) -> "WidthTable":
+        return WidthTable(**{c: getattr(self, c)[mask] for c in COLUMNS})
+
+    # -- io ---------------------------------------------------------------------
+    def to_csv_text(self) -> str:
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(COLUMNS)
+        for i in range(len(self)):
+            w.writerow([int(self.track[i]), f"{self.s_mm[i]:.4f}", f"{self.x_mm[i]:.4f}",
+                        f"{self.y_mm[i]:.4f}", f"{self.t_s[i]:.5f}", f"{self.width_mm[i]:.5f}",
+                        f"{self.width_sd_mm[i]:.5f}", int(self.valid[i]), self.flag[i] or ""])
+        return buf.getvalue()
+
+    def save(self, path) -> Path:
+        return atomic_write_text(path, self.to_csv_text())
+
+    @classmethod
+    def load(cls, path) -> "WidthTable":
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise UserError(f"widths file {path} does not exist") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UserError(f"cannot read widths file {path}: {exc}") from None
+        rows = list(csv.reader(io.StringIO(text)))
+        if not rows:
+            raise UserError(f"widths file {path} is empty; run `calib measure` to make one")
+        header = [h.strip() for h in rows[0]]
+        missing = [c for c in COLUMNS if c not in header]
+        if missing:
+            raise UserError(f"widths file {path} lacks column(s) {', '.join(missing)}; "
+                            f"expected {','.join(COLUMNS)}")
+        body = [r for r in rows[1:] if r]
+        if not body:
+            raise UserError(f"widths file {path} has a header but no samples")
+        idx = {c: header.index(c) for c in COLUMNS}
+        cols = {}
+        try:
+            for c in COLUMNS:
+                vals = [r[idx[c]] if idx[c] < len(r) else "" for r in body]
+                if c == "flag":
+                    cols[c] = np.array(vals, dtype=object)
+                elif c in ("track", "valid"):
+                    cols[c] = np.array([int(float(v)) for v in vals])
+                else:
+                    cols[c] = np.array([float(v) if v.strip() else np.nan for v in vals])
+        except ValueError as exc:
+            raise UserError(f"widths file {path} has a non-numeric value in column {c}: {exc}") from None
+        table = cls(**cols)
+        bad = table.valid & ~(np.isfinite(table.width_mm) & np.isfinite(table.width_sd_mm)
+                              & (table.width_sd_mm > 0))
+        if bad.any():
+            raise UserError(f"widths file {path}: {int(bad.sum())} valid sample(s) have NaN/inf width "
+                            "or a non-positive width_sd_mm (first at row "
+                            f"{int(np.argmax(bad)) + 2}); mark them valid=0 or re-measure")
+        return table
