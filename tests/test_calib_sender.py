@@ -37,9 +37,9 @@ class FakeMarlin:
 
 
 def test_checksum_matches_hand_computed_value():
-    # XOR of the bytes of "N123 M104 S200", worked by hand: 0x23 = 35
-    assert checksum("N123 M104 S200") == 35
-    assert numbered(123, "M104 S200") == "N123 M104 S200*35"
+    # XOR of the bytes of "N123 M104 S200", worked by hand: 0x67 = 103
+    assert checksum("N123 M104 S200") == 103
+    assert numbered(123, "M104 S200") == "N123 M104 S200*103"
 
 
 def test_send_strips_comments_and_honours_resend():
