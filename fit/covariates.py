@@ -1,0 +1,309 @@
+"""Physical covariates at every measured sample, and how much residual variance each explains.
+
+A model that lacks an effect leaves residuals that line up with the physical quantity
+driving that effect: a missing thermal ooze term leaves residuals that decay with the
+time since the last stop, missing back-pressure leaves residuals that grow with the
+commanded width, missing gear slip leaves residuals that grow with extruder speed, bed
+tilt leaves residuals linear in x and y. This module computes those quantities from the
+manifest's timeline at each sample (:func:`compute_covariates`) and scores each one by
+the share of residual variance a smooth function of it explains, against a null that
+keeps the residuals' autocorrelation (:func:`score_covariates`).
+
+The approach follows shared/REFERENCE.md "Finding a missing term": residual-vs-covariate
+structure suggests a term; the term is then added to the physics and confirmed by BIC
+and PSIS-LOO (fit/diagnose.py).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from patterns.manifest import Manifest, Timeline
+
+#: Covariate name -> (unit, what it is). Names carry their unit.
+COVARIATES: dict[str, tuple[str, str]] = {
+    "time_since_flow_change_s": ("s", "time since the commanded flow last differed from its "
+                                 "current value by more than 10 %"),
+    "flow_step_mm3_s": ("mm^3/s", "size and sign of that last commanded flow change "
+                        "(current minus previous flow)"),
+    "time_since_stop_s": ("s", "time since the head last stood still or the extruder last "
+                          "stopped/retracted"),
+    "last_stop_duration_s": ("s", "how long that last stop lasted"),
+    "flow_mm3_s": ("mm^3/s", "commanded volumetric flow"),
+    "extruder_speed_mm_s": ("mm/s", "commanded extruder (filament) speed"),
+    "speed_mm_s": ("mm/s", "head XY speed"),
+    "accel_mm_s2": ("mm/s^2", "head XY acceleration"),
+    "width_nominal_mm": ("mm", "commanded bead width"),
+    "heading_rad": ("rad", "direction of travel, atan2(dy, dx)"),
+    "x_mm": ("mm", "bed x"),
+    "y_mm": ("mm", "bed y"),
+    "e_mm": ("mm", "cumulative commanded filament"),
+    "s_mm": ("mm", "distance along the track from its start"),
+    "t_s": ("s", "print time"),
+}
+
+#: Default covariate groups that describe the same physics: a score on any member points
+#: to the same cause (used by the benchmark to judge "the right covariate").
+EQUIVALENT = {
+    "extruder_speed_mm_s": {"extruder_speed_mm_s", "flow_mm3_s"},
+    "flow_mm3_s": {"extruder_speed_mm_s", "flow_mm3_s"},
+}
+
+
+@dataclass
+class Covariates:
+    """Covariates at n samples: ``values[name]`` is an (n,) float array in the unit of its name."""
+
+    values: dict[str, np.ndarray]
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.values)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.values[name]
+
+
+@dataclass
+class CovariateScore:
+    """How much residual variance a smooth function of one covariate explains.
+
+    r2           R^2 of binned means of the residual on the covariate (0..1)
+    null_r2      mean R^2 of the same fit under the autocorrelation-preserving null
+    score        (r2 - null_r2) / (1 - null_r2), clipped at 0: the excess explained share,
+                 comparable across covariates with different numbers of distinct values
+    p_value      share of null draws with R^2 >= r2 (with the +1 correction)
+    bin_centres, bin_means   the binned curve (for plots), covariate unit and mm
+    """
+
+    name: str
+    r2: float
+    null_r2: float
+    score: float
+    p_value: float
+    bin_centres: np.ndarray = field(repr=False, default=None)
+    bin_means: np.ndarray = field(repr=False, default=None)
+
+
+def filament_diameter_mm(manifest: Manifest) -> float:
+    """Filament diameter (mm) from the manifest's printer profile (1.75 mm if it says none)."""
+    pr = manifest.printer or {}
+    for key in ("filament_diameter_mm", "filament_mm", "filament_dia_mm", "D_mm"):
+        if key in pr:
+            return float(pr[key])
+    for sub in pr.values():
+        if isinstance(sub, dict):
+            for key in ("filament_diameter_mm", "diameter_mm"):
+                if key in sub:
+                    return float(sub[key])
+    return 1.75
+
+
+def compute_covariates(manifest: Manifest, track, s_mm, t_s=None, x_mm=None, y_mm=None,
+                       rel_change: float = 0.10, stop_speed_mm_s: float = 1.0) -> Covariates:
+    """Covariates at samples given by (track id, arc length s_mm) on the manifest's timeline.
+
+    ``t_s`` (print time at each sample) is taken from the widths table when given, else
+    computed as the first passage time from the timeline. The timeline index of a sample
+    is the last timeline point at or before its time.
+
+    time_since_flow_change_s: with q(t) = ve(t) * Af (mm^3/s, Af = pi D^2/4), the time
+    since the last timeline point j < k with |q_j - q_k| > rel_change * max(|q_k|, 0.05 *
+    q_max). It is the natural clock of the pressure-advance transient (seed 001: the width
+    error after a flow step decays as exp(-t/tau)).
+    time_since_stop_s: since the last point with head speed < stop_speed_mm_s or ve <= 0
+    (seed 000: ooze and its thermal tail start at a stop).
+    """
+    tl = manifest.timeline
+    if tl is None:
+        raise ValueError("the manifest has no timeline; covariates need one")
+    track = np.asarray(track, dtype=np.int64)
+    s_mm = np.asarray(s_mm, dtype=float)
+    n = len(track)
+    if t_s is None or not np.all(np.isfinite(np.asarray(t_s, dtype=float))):
+        t_s = _first_passage(tl, track, s_mm, t_s)
+    t_s = np.asarray(t_s, dtype=float)
+    k = np.clip(np.searchsorted(tl.t_s, t_s, side="right") - 1, 0, len(tl) - 1)
+
+    af = np.pi / 4.0 * filament_diameter_mm(manifest) ** 2
+    q = tl.ve_mm_s * af
+    qmax = float(np.max(np.abs(q))) if len(q) else 1.0
+    tol = rel_change * np.maximum(np.abs(q), 0.05 * qmax)
+    j_change = _last_index_outside(q, tol, k)
+    t_change = np.where(j_change >= 0, tl.t_s[np.maximum(j_change, 0)], tl.t_s[0])
+    q_prev = np.where(j_change >= 0, q[np.maximum(j_change, 0)], 0.0)
+
+    stopped = (tl.v_mm_s < stop_speed_mm_s) | (tl.ve_mm_s <= 0)
+    last_stop, stop_len = _last_true_and_run_length(stopped, tl.t_s)
+
+    accel = np.gradient(tl.v_mm_s, tl.t_s) if len(tl) > 1 else np.zeros(len(tl))
+    heading = _heading(manifest, track, s_mm)
+    if x_mm is None or y_mm is None:
+        x_mm = np.interp(t_s, tl.t_s, tl.x_mm)
+        y_mm = np.interp(t_s, tl.t_s, tl.y_mm)
+    width_nom = np.empty(n)
+    for tid in np.unique(track):
+        m = track == tid
+        try:
+            width_nom[m] = manifest.track(int(tid)).interp("width_mm", s_mm[m])
+        except KeyError:
+            width_nom[m] = np.nan
+
+    ls = last_stop[k]
+    vals = {
+        "time_since_flow_change_s": t_s - t_change,
+        "flow_step_mm3_s": q[k] - q_prev,
+        "time_since_stop_s": np.where(ls >= 0, t_s - tl.t_s[np.maximum(ls, 0)], t_s - tl.t_s[0]),
+        "last_stop_duration_s": np.where(ls >= 0, stop_len[np.maximum(ls, 0)], 0.0),
+        "flow_mm3_s": q[k],
+        "extruder_speed_mm_s": tl.ve_mm_s[k],
+        "speed_mm_s": tl.v_mm_s[k],
+        "accel_mm_s2": accel[k],
+        "width_nominal_mm": width_nom,
+        "heading_rad": heading,
+        "x_mm": np.asarray(x_mm, dtype=float),
+        "y_mm": np.asarray(y_mm, dtype=float),
+        "e_mm": tl.e_mm[k],
+        "s_mm": s_mm,
+        "t_s": t_s,
+    }
+    return Covariates(values=vals)
+
+
+def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_null: int = 200,
+                     seed: int = 0, names=None) -> list[CovariateScore]:
+    """Score every covariate by the residual variance a binned-mean curve of it explains.
+
+    For covariate c: sort into ``n_bins`` equal-count bins (or one bin per distinct value
+    when there are fewer), R^2 = 1 - sum (r - mean_bin(r))^2 / sum (r - mean(r))^2.
+
+    Null: residuals along a track are autocorrelated (samples every 0.25 mm), so an
+    i.i.d. permutation null would call any smooth covariate significant. The null instead
+    cyclically shifts the residual sequence (in print order) by a random lag of at least
+    5 % of its length: this keeps the residuals' own autocorrelation and the covariate's,
+    and breaks only their alignment. The score is the excess over the null mean,
+    (R^2 - E0[R^2]) / (1 - E0[R^2]), so covariates with few distinct values (which fit
+    noise with fewer bins) and smooth ones are comparable. Sorted best first.
+    """
+    r = np.asarray(resid, dtype=float)
+    ok = np.isfinite(r)
+    rng = np.random.default_rng(seed)
+    n = int(ok.sum())
+    out = []
+    names = cov.names if names is None else names
+    order = np.argsort(cov["t_s"][ok], kind="stable") if "t_s" in cov.values else np.arange(n)
+    rr = r[ok][order]
+    lo = max(1, n // 20)
+    lags = rng.integers(lo, max(lo + 1, n - lo), size=n_null) if n > 2 else np.zeros(0, int)
+    null_r = np.stack([np.roll(rr, int(L)) for L in lags]) if len(lags) else np.zeros((0, n))
+    for name in names:
+        c = np.asarray(cov[name], dtype=float)[ok][order]
+        good = np.isfinite(c)
+        if good.sum() < 3:
+            out.append(CovariateScore(name, 0.0, 0.0, 0.0, 1.0, np.zeros(0), np.zeros(0)))
+            continue
+        bins, centres = _bins(c[good], n_bins)
+        if len(centres) < 2:
+            out.append(CovariateScore(name, 0.0, 0.0, 0.0, 1.0, centres, np.zeros(len(centres))))
+            continue
+        r2, means = _binned_r2(rr[good][None, :], bins, len(centres))
+        r2n, _ = _binned_r2(null_r[:, good], bins, len(centres)) if len(null_r) else (np.zeros(1), None)
+        null_mean = float(np.mean(r2n))
+        score = max(0.0, (float(r2[0]) - null_mean) / max(1e-12, 1.0 - null_mean))
+        p = (1.0 + float(np.sum(r2n >= r2[0]))) / (1.0 + len(r2n))
+        out.append(CovariateScore(name, float(r2[0]), null_mean, score, p, centres, means[0]))
+    out.sort(key=lambda s: (-s.score, s.p_value))
+    return out
+
+
+# -- helpers ---------------------------------------------------------------------------
+
+def _bins(c: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bin index per value and bin centres: distinct values if few, else equal-count bins."""
+    uniq = np.unique(np.round(c, 9))
+    if len(uniq) <= n_bins:
+        idx = np.searchsorted(uniq, np.round(c, 9))
+        return idx, uniq
+    edges = np.unique(np.quantile(c, np.linspace(0, 1, n_bins + 1)))
+    idx = np.clip(np.searchsorted(edges, c, side="right") - 1, 0, len(edges) - 2)
+    used = np.unique(idx)
+    remap = np.full(len(edges), -1)
+    remap[used] = np.arange(len(used))
+    idx = remap[idx]
+    centres = np.array([np.median(c[idx == b]) for b in range(len(used))])
+    return idx, centres
+
+
+def _binned_r2(r: np.ndarray, idx: np.ndarray, nb: int) -> tuple[np.ndarray, np.ndarray]:
+    """R^2 of bin means, for each row of r (m, n) at once."""
+    m, n = r.shape
+    counts = np.bincount(idx, minlength=nb).astype(float)
+    offs = (np.arange(m)[:, None] * nb + idx[None, :]).ravel()
+    sums = np.bincount(offs, weights=r.ravel(), minlength=m * nb).reshape(m, nb)
+    means = sums / np.maximum(counts, 1)[None, :]
+    fitted = means[:, idx]
+    ss_res = np.sum((r - fitted) ** 2, axis=1)
+    ss_tot = np.sum((r - r.mean(axis=1, keepdims=True)) ** 2, axis=1)
+    return 1.0 - ss_res / np.maximum(ss_tot, 1e-300), means
+
+
+def _last_index_outside(q: np.ndarray, tol: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """For each query index k, the last j < k with |q_j - q_k| > tol_k (-1 if none).
+
+    Walks back in blocks so the cost is proportional to how far back the change is.
+    """
+    out = np.full(len(k), -1, dtype=np.int64)
+    for i, kk in enumerate(k):
+        qk, tk = q[kk], tol[kk]
+        hi = kk
+        block = 64
+        while hi > 0:
+            lo = max(0, hi - block)
+            seg = np.abs(q[lo:hi] - qk) > tk
+            if seg.any():
+                out[i] = lo + int(np.flatnonzero(seg)[-1])
+                break
+            hi = lo
+            block *= 2
+    return out
+
+
+def _last_true_and_run_length(flag: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """last[k] = last index <= k where flag is true (-1 if none); run_len[j] = duration (s)
+    of the run of trues that ends at j (valid where flag[j] and j is a run's end)."""
+    n = len(flag)
+    idx = np.where(flag, np.arange(n), -1)
+    last = np.maximum.accumulate(idx) if n else idx
+    run_len = np.zeros(n)
+    if n:
+        f = flag.astype(np.int8)
+        starts = np.flatnonzero(np.diff(np.concatenate([[0], f])) == 1)
+        ends = np.flatnonzero(np.diff(np.concatenate([f, [0]])) == -1)
+        for a, b in zip(starts, ends):
+            t_end = t[b + 1] if b + 1 < n else t[b]
+            run_len[a:b + 1] = t_end - t[a]
+    return last, run_len
+
+
+def _heading(manifest: Manifest, track: np.ndarray, s_mm: np.ndarray) -> np.ndarray:
+    out = np.full(len(track), np.nan)
+    for tid in np.unique(track):
+        m = track == tid
+        try:
+            _, tan = manifest.track(int(tid)).at(s_mm[m])
+        except KeyError:
+            continue
+        out[m] = np.arctan2(tan[:, 1], tan[:, 0])
+    return out
+
+
+def _first_passage(tl: Timeline, track: np.ndarray, s_mm: np.ndarray, t_s) -> np.ndarray:
+    from patterns.manifest import _first_passage_time
+    out = np.full(len(track), np.nan) if t_s is None else np.asarray(t_s, dtype=float).copy()
+    for tid in np.unique(track):
+        m = (track == tid) & ~np.isfinite(out)
+        on = tl.track == tid
+        if m.any():
+            out[m] = _first_passage_time(tl.s_mm[on], tl.t_s[on], s_mm[m])
+    return out
