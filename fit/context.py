@@ -1,0 +1,274 @@
+"""Everything parameter-independent the physics needs, precomputed once per print.
+
+:class:`SimContext` turns a manifest's timeline and the measurement stations into flat
+arrays: per timeline interval k (between nodes k and k+1) the duration dt, the commanded
+extruder increment de (mm of filament), the head speed, the layer height and whether the
+nozzle is laying a bead on a track; per station the deposit windows.
+
+Deposit geometry (the bead width from flow): while the nozzle is on track T over
+interval k it deposits dV_k = Af * out_k (mm^3) uniformly over the arc lengths
+[s_k, s_k+1] (a stop, s_k == s_k+1, deposits a blob: a jump of V at one s). The
+cumulative deposited volume V(s) along the track is evaluated at the window boundaries
+s_i -+ d/2 (d = nozzle diameter, clipped to the printed part of the track) and
+
+    A_i = (V(s_i + d/2) - V(s_i - d/2)) / L_i,   L_i = clipped window length (mm)
+    w_i = bead_width_mm(A_i, h_i)                   (fit.geometry, rounded rectangle)
+
+which conserves volume exactly. Flow while the nozzle is on no track is dribble.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.errors import UserError
+from fit.geometry import filament_area_mm2
+from patterns.manifest import Manifest, Samples, Timeline, sample_points
+
+PROFILE_KEYS = ("filament_diameter_mm", "nozzle_diameter_mm", "nozzle_land_length_mm",
+                "bowden_length_mm")
+
+
+def profile_dict(profile) -> dict:
+    """A plain dict from a PrinterProfile, a dict, or None (empty dict)."""
+    if profile is None:
+        return {}
+    if isinstance(profile, dict):
+        return dict(profile)
+    if hasattr(profile, "to_dict"):
+        return dict(profile.to_dict())
+    raise UserError(f"printer profile must be a dict or a PrinterProfile, not {type(profile).__name__}")
+
+
+@dataclass
+class SimContext:
+    """Precomputed arrays of one print (timeline + stations). Units in the names.
+
+    Intervals (n_int = n_t - 1): dt_s, de_mm, ve_mm_s (= de/dt), v_head_mm_s, h_mm (layer
+    height of the bead being laid, 0 off-track), on_track (bool), track (id or -1).
+    Stations (n_s): s_track, s_mm, s_x_mm, s_y_mm, s_t_s, s_height_mm, s_heading_rad,
+    s_width_nominal_mm; deposit maps perm, lo_pos, lo_frac, hi_pos, hi_frac, win_mm,
+    printed (station lies on a printed part of a track).
+    """
+
+    t_s: np.ndarray
+    e_mm: np.ndarray
+    ve_node_mm_s: np.ndarray
+    dt_s: np.ndarray
+    de_mm: np.ndarray
+    ve_mm_s: np.ndarray
+    v_head_mm_s: np.ndarray
+    h_mm: np.ndarray
+    on_track: np.ndarray
+    track: np.ndarray
+    filament_diameter_mm: float
+    nozzle_diameter_mm: float
+    filament_area_mm2: float
+    profile: dict
+    s_track: np.ndarray
+    s_mm: np.ndarray
+    s_x_mm: np.ndarray
+    s_y_mm: np.ndarray
+    s_t_s: np.ndarray
+    s_height_mm: np.ndarray
+    s_heading_rad: np.ndarray
+    s_width_nominal_mm: np.ndarray
+    perm: np.ndarray
+    lo_pos: np.ndarray
+    lo_frac: np.ndarray
+    hi_pos: np.ndarray
+    hi_frac: np.ndarray
+    win_mm: np.ndarray
+    printed: np.ndarray
+    center_xy_mm: tuple[float, float] = (0.0, 0.0)
+    firmware_pa_s: float = 0.0
+    firmware_smooth_time_s: float = 0.0
+    cache: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def n_t(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.s_mm)
+
+    @classmethod
+    def build(cls, manifest, samples=None, profile=None) -> "SimContext":
+        """Precompute from a :class:`Manifest` (with timeline) and stations.
+
+        ``samples``: a :class:`patterns.manifest.Samples`, a :class:`measure.table.WidthTable`
+        (its track, s_mm), or None for ``sample_points(manifest)``. ``profile``: a
+        PrinterProfile or dict with filament_diameter_mm and nozzle_diameter_mm (default:
+        ``manifest.printer``).
+        """
+        if isinstance(manifest, Timeline):
+            manifest = Manifest(printer={}, pattern={}, tracks=[], timeline=manifest)
+        if not isinstance(manifest, Manifest):
+            raise UserError(f"expected a manifest, got {type(manifest).__name__}")
+        tl = manifest.timeline
+        if tl is None or len(tl) < 2:
+            raise UserError("the manifest has no timeline; plan the G-code first (`calib plan`)")
+        prof = profile_dict(manifest.printer)
+        prof.update(profile_dict(profile))
+        try:
+            D = float(prof.get("filament_diameter_mm", 1.75))
+            d = float(prof.get("nozzle_diameter_mm", 0.4))
+        except (TypeError, ValueError):
+            raise UserError("printer profile: filament_diameter_mm and nozzle_diameter_mm must be numbers") from None
+        if not (D > 0 and d > 0):
+            raise UserError("printer profile: filament_diameter_mm and nozzle_diameter_mm must be > 0")
+
+        t = tl.t_s
+        dt_raw = np.diff(t)
+        if np.any(dt_raw < 0):
+            raise UserError("timeline time t_s goes backwards; re-plan the G-code")
+        # A zero-length interval carrying an E step is an instantaneous move: a tiny dt
+        # keeps de exact and lets the exact/implicit step absorb it into P.
+        dt = np.maximum(dt_raw, 1e-9)
+        de = np.diff(tl.e_mm)
+        trk = tl.track
+        on = (trk[:-1] == trk[1:]) & (trk[:-1] >= 0)
+        ds_xy = np.hypot(np.diff(tl.x_mm), np.diff(tl.y_mm))
+        with np.errstate(invalid="ignore"):
+            ds_tr = np.where(on, np.abs(np.diff(np.nan_to_num(tl.s_mm))), ds_xy)
+        v_head = ds_tr / dt
+        track_of = {tr.id: tr for tr in manifest.tracks}
+        h_int = np.zeros(len(dt))
+        s_mid = 0.5 * (np.nan_to_num(tl.s_mm[:-1]) + np.nan_to_num(tl.s_mm[1:]))
+        for tid in np.unique(trk[:-1][on]):
+            m = on & (trk[:-1] == tid)
+            tr = track_of.get(int(tid))
+            h_int[m] = tr.interp("height_mm", s_mid[m]) if tr is not None else 0.2
+
+        if samples is None:
+            if not manifest.tracks:
+                raise UserError("no tracks to sample: pass samples or a manifest with tracks")
+            samples = sample_points(manifest)
+        st = _stations(manifest, samples, track_of)
+
+        perm, lo_pos, lo_frac, hi_pos, hi_frac, win, printed = _deposit_maps(
+            trk, tl.s_mm, on, st["track"], st["s_mm"], d)
+
+        pat = manifest.pattern or {}
+        pparams = pat.get("params", {}) if isinstance(pat.get("params", {}), dict) else {}
+
+        def _pget(*keys):
+            for k in keys:
+                for src in (pparams, pat):
+                    if k in src:
+                        try:
+                            return float(src[k])
+                        except (TypeError, ValueError):
+                            pass
+            return 0.0
+
+        if len(st["x"]):
+            center = (float(0.5 * (st["x"].min() + st["x"].max())),
+                      float(0.5 * (st["y"].min() + st["y"].max())))
+        else:
+            center = (0.0, 0.0)
+        return cls(
+            t_s=t, e_mm=tl.e_mm, ve_node_mm_s=tl.ve_mm_s, dt_s=dt, de_mm=de, ve_mm_s=de / dt,
+            v_head_mm_s=v_head, h_mm=np.where(on, h_int, 0.0), on_track=on,
+            track=np.where(on, trk[:-1], -1),
+            filament_diameter_mm=D, nozzle_diameter_mm=d, filament_area_mm2=filament_area_mm2(D),
+            profile=prof,
+            s_track=st["track"], s_mm=st["s_mm"], s_x_mm=st["x"], s_y_mm=st["y"], s_t_s=st["t"],
+            s_height_mm=st["h"], s_heading_rad=st["heading"], s_width_nominal_mm=st["w"],
+            perm=perm, lo_pos=lo_pos, lo_frac=lo_frac, hi_pos=hi_pos, hi_frac=hi_frac,
+            win_mm=win, printed=printed, center_xy_mm=center,
+            firmware_pa_s=_pget("firmware_pa_s", "pressure_advance_s", "pa_s"),
+            firmware_smooth_time_s=_pget("firmware_smooth_time_s", "pressure_advance_smooth_time_s",
+                                         "smooth_time_s"),
+        )
+
+
+def _stations(manifest: Manifest, samples, track_of: dict) -> dict:
+    """Station arrays from Samples or a WidthTable (heights/headings from the tracks)."""
+    trk = np.asarray(samples.track, dtype=np.int64)
+    s = np.asarray(samples.s_mm, dtype=float)
+    n = len(trk)
+    x = np.asarray(getattr(samples, "x_mm", np.zeros(n)), dtype=float)
+    y = np.asarray(getattr(samples, "y_mm", np.zeros(n)), dtype=float)
+    tt = np.asarray(getattr(samples, "t_s", np.full(n, np.nan)), dtype=float)
+    h = np.full(n, np.nan)
+    w = np.full(n, np.nan)
+    heading = np.zeros(n)
+    if isinstance(samples, Samples):
+        h = np.asarray(samples.height_mm, dtype=float).copy()
+        w = np.asarray(samples.width_nominal_mm, dtype=float).copy()
+        heading = np.arctan2(-np.asarray(samples.nx, float), np.asarray(samples.ny, float))
+    else:
+        for tid in np.unique(trk):
+            m = trk == tid
+            tr = track_of.get(int(tid))
+            if tr is None:
+                continue
+            h[m] = tr.interp("height_mm", s[m])
+            w[m] = tr.interp("width_mm", s[m])
+            _, tan = tr.at(s[m])
+            heading[m] = np.arctan2(tan[:, 1], tan[:, 0])
+    missing = ~np.isfinite(h)
+    if missing.any():
+        if manifest.tracks:
+            raise UserError(f"{int(missing.sum())} station(s) name track ids not in the manifest "
+                            f"(first: track {int(trk[missing][0])}); use the manifest the widths were measured on")
+        h[missing] = 0.2
+    return dict(track=trk, s_mm=s, x=x, y=y, t=tt, h=h, w=w, heading=heading)
+
+
+def _deposit_maps(trk, s_tl, on, st_track, st_s, d_mm):
+    """Index maps so that V(s_b) = C[pos] - (1 - frac) * dV[perm[pos]] for every boundary.
+
+    perm lists the on-track intervals grouped by track, in time order; C is the cumulative
+    sum of the deposited volume along perm (restarting per track is unnecessary: only
+    differences between boundaries of one track are used).
+    """
+    idx = np.flatnonzero(on)
+    t_of = trk[:-1][idx]
+    order = np.argsort(t_of, kind="stable")
+    perm = idx[order]
+    ptrack = trk[:-1][perm]
+    sa = np.nan_to_num(s_tl[:-1][perm])
+    sb = np.nan_to_num(s_tl[1:][perm])
+    n = len(st_s)
+    lo_pos = np.zeros(n, np.int64)
+    hi_pos = np.zeros(n, np.int64)
+    lo_frac = np.zeros(n)
+    hi_frac = np.zeros(n)
+    win = np.zeros(n)
+    printed = np.zeros(n, bool)
+    if len(perm) == 0:
+        return perm, lo_pos, lo_frac, hi_pos, hi_frac, win, printed
+    starts = np.searchsorted(ptrack, np.unique(ptrack), side="left")
+    ends = np.searchsorted(ptrack, np.unique(ptrack), side="right")
+    for tid, a, b in zip(np.unique(ptrack), starts, ends):
+        m = st_track == tid
+        if not m.any():
+            continue
+        s_lo_tr, s_hi_tr = float(sa[a:b].min()), float(sb[a:b].max())
+        # s along one track must advance with time for V(s) to be a function of s.
+        sb_run = np.maximum.accumulate(sb[a:b])
+        ss = st_s[m]
+        inside = (ss >= s_lo_tr - 1e-9) & (ss <= s_hi_tr + 1e-9)
+        lo = np.clip(ss - 0.5 * d_mm, s_lo_tr, s_hi_tr)
+        hi = np.clip(ss + 0.5 * d_mm, s_lo_tr, s_hi_tr)
+        win[m] = hi - lo
+        printed[m] = inside & (hi - lo > 1e-9)
+        for bnd, pos_out, frac_out in ((lo, lo_pos, lo_frac), (hi, hi_pos, hi_frac)):
+            j = np.clip(np.searchsorted(sb_run, bnd, side="left"), 0, b - a - 1)
+            s0 = sa[a:b][j]
+            L = sb[a:b][j] - s0
+            frac = np.where(L > 1e-12, (bnd - s0) / np.where(L > 1e-12, L, 1.0), 1.0)
+            frac = np.clip(frac, 0.0, 1.0)
+            # Window edges at the ends of the printed part take in everything deposited
+            # there, including blobs left by dwells at the very start or end.
+            at_start = bnd <= s_lo_tr + 1e-12
+            at_end = bnd >= s_hi_tr - 1e-12
+            j = np.where(at_start, 0, np.where(at_end, b - a - 1, j))
+            frac = np.where(at_start, 0.0, np.where(at_end, 1.0, frac))
+            pos_out[m] = a + j
+            frac_out[m] = frac
+    return perm, lo_pos, lo_frac, hi_pos, hi_frac, win, printed

@@ -1,0 +1,478 @@
+"""The library of composable extrusion effects.
+
+An :class:`Effect` is a small object: ``name``, ``params`` (tuple of :class:`Param`), a
+docstring with its equation and source, and the stage(s) it acts in:
+
+* ``command(ctx, ve, p) -> ve``  transforms the commanded extruder velocity per timeline
+  interval, ve (n_sets, n_int) mm/s (firmware PA, backlash, flow gain, user effects).
+* nozzle terms (built-ins only): ``nozzle(p, coef)`` writes columns of the compiled
+  kernel's coefficient array (fit/kernels.py): pa, nonlinear, bernoulli, backpressure,
+  offset, kalico_tanh, kalico_recip, thermal.
+* ``height(ctx, h, p) -> h``     layer height (mm) at the stations (bed tilt).
+* ``width(ctx, w, p) -> w``      width (mm) at the stations (heading-dependent width).
+
+``p`` maps the effect's *local* parameter names (``tau_s``) to arrays of shape
+(n_sets, 1). State P (mm of filament stored as compression, seed 001 ``pe``) obeys
+dP/dt = ve - vn, with vn solving P = Preq(vn) (see fit/kernels.py for the full Preq).
+
+Every parameter's bounds include "effect absent" (amplitude 0, gain 1) so any effect
+can be added to any model and fitted (compare / diagnose).
+
+User effects: a Python file defining subclasses of :class:`Effect` with ``command``,
+``height`` or ``width`` in numpy, loaded with :func:`load_effects_file`.
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from calib.errors import UserError
+from fit import kernels as K
+from fit.params import Param
+
+REGISTRY: dict[str, type] = {}
+
+
+def _check_effect_class(cls, where: str) -> None:
+    if not (isinstance(cls, type) and issubclass(cls, Effect)):
+        raise UserError(f"{where}: {cls!r} is not a subclass of fit.effects.Effect")
+    if not isinstance(cls.name, str) or not cls.name.isidentifier():
+        raise UserError(f"{where}: effect class {cls.__name__} needs a `name` that is an identifier")
+    if not all(isinstance(p, Param) for p in cls.params):
+        raise UserError(f"{where}: effect {cls.name}: `params` must be a tuple of fit.params.Param")
+    if not cls.stages():
+        raise UserError(f"{where}: effect {cls.name} defines none of command(), height(), width()")
+
+
+def register_effect(cls):
+    """Class decorator: add an Effect subclass to :data:`REGISTRY` under ``cls.name``."""
+    _check_effect_class(cls, where="register_effect")
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+class Effect:
+    """Base class. Subclasses set ``name``, ``params`` and implement one or more stages."""
+
+    name: str = ""
+    params: tuple[Param, ...] = ()
+    #: True for the built-in nozzle terms read by the compiled kernel.
+    nozzle_term: bool = False
+
+    def __init__(self, profile: dict | None = None):
+        self.profile = dict(profile or {})
+
+    def __repr__(self) -> str:
+        return f"<effect {self.name}>"
+
+    @classmethod
+    def stages(cls) -> tuple[str, ...]:
+        out = tuple(s for s in ("command", "height", "width") if callable(getattr(cls, s, None)))
+        return (("nozzle",) if cls.nozzle_term else ()) + out
+
+
+# -----------------------------------------------------------------------------------
+# Seed 000 conversion between KISSlicer's viscoelasticity VE and the time constant tau.
+
+def tau_from_ve_s(ve_us, D_mm, L_mm, l_mm, d_mm):
+    """Spring/nozzle time constant tau (s) from KISSlicer's VE (us), seed 000:
+
+        tau = 32 * D^2 * L * l / d^4 * VE
+
+    D filament diameter, L Bowden length, l nozzle land length, d nozzle diameter (mm).
+    (Hookean spring k = E Af / L against Poiseuille flow through the land: VE = mu / E.)
+    D=2.85, L=150, l=0.6, d=0.4 mm, VE=0.65 us gives tau = 0.594 s (seed 000: ~0.6 s).
+    """
+    return 32.0 * np.asarray(D_mm, float) ** 2 * L_mm * l_mm / np.asarray(d_mm, float) ** 4 \
+        * np.asarray(ve_us, float) * 1e-6
+
+
+def ve_from_tau_us(tau_s, D_mm, L_mm, l_mm, d_mm):
+    """Inverse of :func:`tau_from_ve_s`: VE (us) = tau * d^4 / (32 D^2 L l) * 1e6."""
+    return np.asarray(tau_s, float) * np.asarray(d_mm, float) ** 4 / (
+        32.0 * np.asarray(D_mm, float) ** 2 * L_mm * l_mm) * 1e6
+
+
+# -----------------------------------------------------------------------------------
+# Nozzle terms (compiled kernel)
+
+@register_effect
+class PA(Effect):
+    """Linear pressure advance (seed 001 "Linear Advance" Kf; seed 000 tau).
+
+    Filament + Bowden is a spring, the nozzle a linear resistance:
+        dP/dt = ve - vn,   vn = P / tau   (Preq = tau * vn)
+    A flow step relaxes as exp(-t/tau). Direct drive ~0.02-0.08 s, long Bowden ~1 s.
+    """
+
+    name = "pa"
+    nozzle_term = True
+    params = (Param("tau_s", "s", 0.5, 0.005, 5.0, "loguniform",
+                    doc="spring/nozzle time constant (= ideal firmware PA K)"),)
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_TAU] = p["tau_s"][:, 0]
+
+
+@register_effect
+class PAVE(Effect):
+    """Linear pressure advance parameterised by KISSlicer's viscoelasticity VE (seed 000).
+
+        tau = 32 * D^2 * L * l / d^4 * VE      (profile: filament D, Bowden L,
+                                                nozzle land l, nozzle bore d, all mm)
+    then as ``pa``: Preq = tau * vn. Needs a Bowden printer profile (L > 0).
+    """
+
+    name = "pa_ve"
+    nozzle_term = True
+    params = (Param("ve_us", "us", 0.65, 0.01, 20.0, "loguniform",
+                    doc="viscoelasticity mu/E of the filament (ABS ~0.65 us)"),)
+
+    def __init__(self, profile=None):
+        super().__init__(profile)
+        try:
+            self.geom = tuple(float(self.profile[k]) for k in (
+                "filament_diameter_mm", "bowden_length_mm", "nozzle_land_length_mm",
+                "nozzle_diameter_mm"))
+        except (KeyError, TypeError, ValueError):
+            raise UserError("effect pa_ve needs a printer profile with filament_diameter_mm, "
+                            "bowden_length_mm, nozzle_land_length_mm and nozzle_diameter_mm") from None
+        if self.geom[1] <= 0 or self.geom[2] <= 0:
+            raise UserError("effect pa_ve needs bowden_length_mm > 0 and nozzle_land_length_mm > 0; "
+                            "use `pa` (tau_s) for a direct drive")
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_TAU] = tau_from_ve_s(p["ve_us"][:, 0], *self.geom)
+
+
+@register_effect
+class Nonlinear(Effect):
+    """Power-law (shear-thinning) nozzle: the pa term becomes
+
+        Preq_pa = tau * v_ref * (vn / v_ref)^n       (q ~ P^(1/n))
+
+    n = 1 is linear pa (effect absent); melts have n ~0.3-0.5 (REFERENCE "Shear
+    thinning"), so steady advance grows like v^n and the local time constant
+    dPreq/dvn = tau * n * (vn/v_ref)^(n-1) falls with flow. v_ref = 1 mm/s of filament
+    (fixed) makes tau the time constant at that flow.
+
+    Firmware nonlinear PA maps onto steady-state Preq terms: Kalico's
+    advance = LA*v + off*tanh(v/v_lin) is exactly Preq(vn) = LA*vn + off*tanh(vn/v_lin)
+    (pa + ``kalico_tanh``), and its "recipr" model off*(1 - 1/(1 + v/v_lin)) is
+    ``kalico_recip``. RRF's "advance ~ sqrt(v)" is this power law with n = 0.5.
+    """
+
+    name = "nonlinear"
+    nozzle_term = True
+    params = (Param("n", "1", 1.0, 0.2, 1.5, "uniform", doc="power-law index (1 = linear)"),
+              Param("v_ref_mm_s", "mm/s", 1.0, 0.01, 100.0, "loguniform", fixed=True,
+                    doc="reference filament speed of the power law"))
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_N] = p["n"][:, 0]
+        coef[:, K.C_VREF] = p["v_ref_mm_s"][:, 0]
+
+
+@register_effect
+class Bernoulli(Effect):
+    """Bernoulli (orifice) advance, seed 002: advance volume = k * q^2, q in mm^3/s.
+
+        Preq_b = k * q^2 / Af = k * Af * vn^2     (mm of filament; k in s^2/mm^3)
+
+    Seed 002 uses k ~ 0.02 (0.1 from auto-priming numbers). k = 0: absent.
+    """
+
+    name = "bernoulli"
+    nozzle_term = True
+    params = (Param("k_s2_mm3", "s^2/mm^3", 0.02, 0.0, 0.5, "uniform",
+                    doc="advance volume per squared volumetric flow"),)
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_KBERN] = p["k_s2_mm3"][:, 0]
+
+
+@register_effect
+class Backpressure(Effect):
+    """Bead back-pressure, seed 001 "Print Layer BackPressure": Pb = Kb * Db, Db = r*w.
+
+    The bead being laid (width w = bead_width_mm(Af*vn/v_head, h)) pushes back on the
+    nozzle. Later tests (realdata AUTHOR-NOTES, REFERENCE) show it flattens above ~0.8 mm
+    for a 0.4 mm nozzle, so it saturates:
+
+        Pb = Kb * w_sat * tanh(w / w_sat)        (mm of filament)
+
+    Stopped on the track (v_head = 0) the bead is "infinitely wide": Pb = Kb * w_sat,
+    a threshold the pressure must exceed before any flow. Off-track (travel): Pb = 0.
+    At steady state it acts as a width-dependent offset Cf = Kb*Db (seed 001).
+    """
+
+    name = "backpressure"
+    nozzle_term = True
+    params = (Param("kb", "mm/mm", 1.0, 0.0, 5.0, "uniform",
+                    doc="back-pressure per mm of bead width (seed 001 Kb)"),
+              Param("w_sat_mm", "mm", 0.8, 0.2, 3.0, "uniform",
+                    doc="bead width where back-pressure saturates (~2x nozzle)"))
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_KB] = p["kb"][:, 0]
+        coef[:, K.C_WSAT] = p["w_sat_mm"][:, 0]
+
+
+@register_effect
+class Offset(Effect):
+    """Constant offset pressure Kc (mm of filament) that must be exceeded before any
+    flow (seed 001 Kc): Preq = Kc + ... for vn > 0. Kc = 0: absent."""
+
+    name = "offset"
+    nozzle_term = True
+    params = (Param("kc_mm", "mm", 0.2, 0.0, 3.0, "uniform", doc="flow threshold pressure"),)
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_KC] = p["kc_mm"][:, 0]
+
+
+@register_effect
+class KalicoTanh(Effect):
+    """Kalico ``pressure_advance_model: tanh`` read as a steady-state Preq term
+    (REFERENCE "Nonlinear PA in the wild"):
+
+        Preq += off * tanh(vn / v_lin)      (mm; vn mm/s of filament)
+
+    Example (direct drive PLA): LA = pa.tau_s = 0.017 s, off = 0.12 mm, v_lin = 1 mm/s.
+    off = 0: absent.
+    """
+
+    name = "kalico_tanh"
+    nozzle_term = True
+    params = (Param("off_mm", "mm", 0.1, 0.0, 3.0, "uniform", doc="saturating advance offset"),
+              Param("v_lin_mm_s", "mm/s", 1.0, 0.02, 20.0, "loguniform",
+                    doc="filament speed where the offset saturates"))
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_TOFF] = p["off_mm"][:, 0]
+        coef[:, K.C_TVL] = p["v_lin_mm_s"][:, 0]
+
+
+@register_effect
+class KalicoRecip(Effect):
+    """Kalico ``pressure_advance_model: recipr`` as a Preq term (REFERENCE):
+
+        Preq += off * (1 - 1/(1 + vn/v_lin)) = off * vn / (vn + v_lin)     (mm)
+    """
+
+    name = "kalico_recip"
+    nozzle_term = True
+    params = (Param("off_mm", "mm", 0.1, 0.0, 3.0, "uniform", doc="saturating advance offset"),
+              Param("v_lin_mm_s", "mm/s", 1.0, 0.02, 20.0, "loguniform",
+                    doc="filament speed of half saturation"))
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_ROFF] = p["off_mm"][:, 0]
+        coef[:, K.C_RVL] = p["v_lin_mm_s"][:, 0]
+
+
+@register_effect
+class Thermal(Effect):
+    """Thermal ooze, seed 000: a second, slower exponential process.
+
+        dX/dt = (vn - X) / tau_th          (X: recent outflow, mm/s)
+        dP/dt = ve - vn + a * (X - vn)     (thermal expansion source)
+
+    At steady state X = vn and nothing changes; after a stop from flow v0 an extra ooze
+    ~ a * v0 * exp(-t / tau_th) lasts tens of seconds (seed 000: starts 10-30x smaller
+    than the elastic ooze). The net volume over a start-stop cycle is zero
+    (integral of a*(X - vn) dt = -a*tau_th*dX). a = 0: absent.
+    """
+
+    name = "thermal"
+    nozzle_term = True
+    params = (Param("a", "1", 0.05, 0.0, 1.0, "uniform", doc="thermal ooze amplitude"),
+              Param("tau_s", "s", 20.0, 1.0, 300.0, "loguniform", doc="thermal time constant"))
+
+    def nozzle(self, p, coef):
+        coef[:, K.C_ATH] = p["a"][:, 0]
+        coef[:, K.C_TAUTH] = p["tau_s"][:, 0]
+
+
+# -----------------------------------------------------------------------------------
+# Command-stage effects
+
+@register_effect
+class FirmwarePA(Effect):
+    """The firmware's own pressure advance, applied to the command (a known input).
+
+    Klipper: pa_pos = pos + K * vel, smoothed by a triangular window of total width
+    smooth_time (kinematics/extruder.c; REFERENCE: default 0.040 s); Marlin LA:
+    pos + K * vel (smooth_time = 0). Both parameters are fixed by default; NaN means
+    "take them from the manifest's pattern parameters" (``firmware_pa_s``,
+    ``firmware_smooth_time_s``), so patterns printed with PA on are simulated right.
+    (Klipper applies PA to retractions too in this model; it does not in firmware.)
+    """
+
+    name = "firmware_pa"
+    params = (Param("k_s", "s", float("nan"), 0.0, 2.0, "uniform", fixed=True,
+                    doc="firmware PA constant K (NaN: from the manifest)"),
+              Param("smooth_time_s", "s", float("nan"), 0.0, 0.2, "uniform", fixed=True,
+                    doc="firmware PA smoothing window (NaN: from the manifest)"))
+
+    def command(self, ctx, ve, p):
+        k = _nan_to(p["k_s"], ctx.firmware_pa_s)
+        st = _nan_to(p["smooth_time_s"], ctx.firmware_smooth_time_s)
+        if not np.any(k):
+            return ve
+        e = ctx.e_mm
+        out = np.empty_like(ve)
+        for st_val in np.unique(st):
+            rows = (st == st_val)[:, 0]
+            se = _smoothed(ctx, "e", e, float(st_val))
+            sv = _smoothed(ctx, "v", ctx.ve_node_mm_s, float(st_val))
+            base = ve[rows] - np.diff(e) / ctx.dt_s + np.diff(se) / ctx.dt_s
+            out[rows] = base + k[rows] * (np.diff(sv) / ctx.dt_s)
+        return out
+
+
+def _nan_to(arr, value):
+    a = np.asarray(arr, float)
+    return np.where(np.isfinite(a), a, value)
+
+
+def _smoothed(ctx, key, f, smooth_s):
+    """f (at the timeline nodes) convolved with a triangular window of total width
+    smooth_s (= two boxes of smooth_s/2), on a 0.5 ms grid; cached in ctx."""
+    ck = ("fw_smooth", key, smooth_s)
+    if ck in ctx.cache:
+        return ctx.cache[ck]
+    if smooth_s <= 0:
+        res = np.asarray(f, float)
+    else:
+        t = ctx.t_s
+        step = min(5e-4, smooth_s / 20)
+        grid = np.arange(t[0] - smooth_s, t[-1] + smooth_s + step, step)
+        g = np.interp(grid, t, f)
+        nb = max(int(round(0.5 * smooth_s / step)), 1)
+        box = np.ones(nb) / nb
+        g = np.convolve(np.convolve(g, box, mode="same"), box, mode="same")
+        res = np.interp(t, grid, g)
+    ctx.cache[ck] = res
+    return res
+
+
+@register_effect
+class Backlash(Effect):
+    """Extruder dead band Be (mm) on direction reversal (seed 001 logs: Be ~0.4-1.2 mm).
+
+    A play operator on the cumulative commanded E:
+        y_k = max(e_k - Be, min(y_{k-1}, e_k))
+    after a retraction the filament does not move until the gear has taken up Be.
+    Be = 0: absent.
+    """
+
+    name = "backlash"
+    params = (Param("be_mm", "mm", 0.0, 0.0, 3.0, "uniform", doc="dead band on reversal"),)
+
+    def command(self, ctx, ve, p):
+        be = np.broadcast_to(p["be_mm"][:, 0], (ve.shape[0],)).astype(float)
+        if not np.any(be):
+            return ve
+        e = np.concatenate([np.zeros((ve.shape[0], 1)), np.cumsum(ve * ctx.dt_s, axis=1)], axis=1)
+        y = np.empty_like(e)
+        K.play_operator(e, np.ascontiguousarray(be), y)
+        return np.diff(y, axis=1) / ctx.dt_s
+
+
+@register_effect
+class FlowGain(Effect):
+    """Static flow gain g: extruded = g * commanded (extrusion multiplier, filament
+    diameter error: g = (D_true/D_assumed)^2, e-steps). g = 1: absent."""
+
+    name = "flow_gain"
+    params = (Param("gain", "1", 1.0, 0.7, 1.3, "uniform", doc="extrusion multiplier error"),)
+
+    def command(self, ctx, ve, p):
+        return ve * p["gain"]
+
+
+# -----------------------------------------------------------------------------------
+# Station-stage nuisances
+
+@register_effect
+class BedTilt(Effect):
+    """Layer height varying as a plane over the bed (bed tilt / mesh error):
+
+        h = h0 + gx * (x - xc) + gy * (y - yc)       (xc, yc: centre of the stations)
+
+    The deposited area is unchanged, so the width follows from the same area at the new
+    height (width ~ 1/h, REFERENCE "Width from flow"). gx = gy = 0: absent.
+    """
+
+    name = "bed_tilt"
+    params = (Param("gx", "mm/mm", 0.0, -0.005, 0.005, "uniform", doc="height slope along x"),
+              Param("gy", "mm/mm", 0.0, -0.005, 0.005, "uniform", doc="height slope along y"))
+
+    def height(self, ctx, h, p):
+        xc, yc = ctx.center_xy_mm
+        return h + p["gx"] * (ctx.s_x_mm - xc) + p["gy"] * (ctx.s_y_mm - yc)
+
+
+@register_effect
+class Heading(Effect):
+    """Width depending on the direction of travel theta (Duet3D spiral, seed 004):
+
+        w = w0 + a * cos(theta) + b * sin(theta)     (mm)
+
+    e.g. a nozzle wiping one side, a tilted nozzle, a fan from one side. a = b = 0: absent.
+    """
+
+    name = "heading"
+    params = (Param("a_mm", "mm", 0.0, -0.2, 0.2, "uniform", doc="cos(heading) width term"),
+              Param("b_mm", "mm", 0.0, -0.2, 0.2, "uniform", doc="sin(heading) width term"))
+
+    def width(self, ctx, w, p):
+        th = ctx.s_heading_rad
+        return w + p["a_mm"] * np.cos(th) + p["b_mm"] * np.sin(th)
+
+
+# -----------------------------------------------------------------------------------
+# User effects
+
+def load_effects_file(path) -> list[type]:
+    """Effect classes defined in a user's Python file (``--effects my_effects.py``).
+
+    The file subclasses :class:`Effect` and implements ``command``, ``height`` or
+    ``width`` in numpy. Any problem (missing file, syntax error, exception on import,
+    malformed class, name clash with a built-in) -> UserError.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"effects file {path} does not exist")
+    modname = f"calib_user_effects_{abs(hash(str(path.resolve())))}"
+    try:
+        spec = importlib.util.spec_from_file_location(modname, path)
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[modname] = mod
+        spec.loader.exec_module(mod)
+    except UserError:
+        raise
+    except SyntaxError as exc:
+        raise UserError(f"effects file {path}: syntax error at line {exc.lineno}: {exc.msg}") from None
+    except Exception as exc:  # the user's code: report it on one line
+        raise UserError(f"effects file {path} failed to load: {type(exc).__name__}: {exc}") from None
+    finally:
+        sys.modules.pop(modname, None)
+    classes = [obj for obj in vars(mod).values()
+               if isinstance(obj, type) and issubclass(obj, Effect) and obj is not Effect
+               and obj.__module__ == modname]
+    if not classes:
+        raise UserError(f"effects file {path} defines no subclass of fit.effects.Effect")
+    for cls in classes:
+        _check_effect_class(cls, where=f"effects file {path}")
+        if cls.nozzle_term:
+            raise UserError(f"effects file {path}: effect {cls.name}: nozzle terms are built-in only; "
+                            "implement command(), height() or width()")
+        if cls.name in REGISTRY and REGISTRY[cls.name] is not cls:
+            raise UserError(f"effects file {path}: effect name {cls.name!r} clashes with a built-in effect")
+    return classes

@@ -1,0 +1,268 @@
+"""A composition of effects: the object the fitters evaluate for many parameter sets.
+
+``build_model("pa+thermal+backpressure", profile)`` -> :class:`Model`. Parameters are
+named ``effect.local`` (``pa.tau_s``); theta is (n_sets, k) or (k,) over the free ones.
+
+Pipeline of :meth:`Model.simulate` (one pass, all parameter sets at once):
+
+1. command stage: ve = de/dt per timeline interval (mm/s), transformed by the command
+   effects in spec order (firmware_pa, backlash, flow_gain, user effects);
+2. nozzle: the compiled kernel integrates dP/dt = ve - vn (+ thermal) with
+   P = Preq(vn) (fit/kernels.py) -> filament out of the nozzle per interval;
+3. deposit: dV = Af * out on track intervals, V(s) per track, A_i over a window of one
+   nozzle diameter around each station (fit/context.py), h_i from the height effects,
+   w_i = bead_width_mm(A_i, h_i), then the width effects.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.errors import UserError
+from fit import kernels as K
+from fit.context import SimContext, profile_dict
+from fit.effects import REGISTRY, Effect
+from fit.geometry import bead_width_mm
+from fit.params import Param
+
+# Kernel defaults when an effect is absent: linear (n=1), no other term.
+_COEF_DEFAULT = np.zeros(K.N_COEF)
+_COEF_DEFAULT[K.C_TAU] = 1e-6
+_COEF_DEFAULT[K.C_N] = 1.0
+_COEF_DEFAULT[K.C_VREF] = 1.0
+_COEF_DEFAULT[K.C_WSAT] = 1.0
+_COEF_DEFAULT[K.C_TVL] = 1.0
+_COEF_DEFAULT[K.C_RVL] = 1.0
+_COEF_DEFAULT[K.C_TAUTH] = 1.0
+_LINEAR_OK = {"pa", "pa_ve", "offset"}
+
+
+@dataclass
+class Simulation:
+    """Full output of one simulation (n_sets parameter sets).
+
+    out_mm        (n_sets, n_int) filament (mm) out of the nozzle per timeline interval
+    vn_node_mm_s  (n_sets, n_t) nozzle outflow at the timeline nodes (mm/s of filament)
+    ve_mm_s       (n_sets, n_int) commanded extruder velocity after the command effects
+    p_end_mm      (n_sets,) advance P still stored at the end (mm of filament)
+    x_end_mm_s    (n_sets,) thermal state at the end (mm/s)
+    widths_mm     (n_sets, n_samples) bead width at the stations (mm)
+    height_mm     (n_sets, n_samples) layer height at the stations (mm)
+    area_mm2      (n_sets, n_samples) deposited cross-section at the stations (mm^2)
+    """
+
+    out_mm: np.ndarray
+    vn_node_mm_s: np.ndarray
+    ve_mm_s: np.ndarray
+    p_end_mm: np.ndarray
+    x_end_mm_s: np.ndarray
+    widths_mm: np.ndarray
+    height_mm: np.ndarray
+    area_mm2: np.ndarray
+
+
+class Model:
+    """A composition of effect instances with named free/fixed parameters."""
+
+    def __init__(self, effects: list[Effect], fixed: dict | None = None, spec: str = ""):
+        self.effects = list(effects)
+        self.spec = spec or "+".join(e.name for e in self.effects)
+        all_params: list[Param] = []
+        for e in self.effects:
+            all_params += [p.prefixed(e.name) for p in e.params]
+        fixed = dict(fixed or {})
+        names = [p.name for p in all_params]
+        unknown = [k for k in fixed if k not in names]
+        if unknown:
+            raise UserError(f"cannot fix unknown parameter(s) {', '.join(unknown)} of model "
+                            f"{self.spec}; its parameters are {', '.join(names)}")
+        out = []
+        for p in all_params:
+            if p.name in fixed:
+                v = float(fixed[p.name])
+                if np.isfinite(v):
+                    p.check_value(v, where="fixed value: ")
+                p = p.with_default(v, fixed=True)
+            out.append(p)
+        self.all_params: tuple[Param, ...] = tuple(out)
+        self.params: tuple[Param, ...] = tuple(p for p in out if not p.fixed)
+        self.param_names: list[str] = [p.name for p in self.params]
+        self.bounds = np.array([[p.lower, p.upper] for p in self.params], dtype=float).reshape(-1, 2)
+        self._linear = all(e.name in _LINEAR_OK for e in self.effects if e.nozzle_term)
+        self._nozzle = [e for e in self.effects if e.nozzle_term]
+        self._command = [e for e in self.effects if "command" in e.stages()]
+        self._height = [e for e in self.effects if "height" in e.stages()]
+        self._width = [e for e in self.effects if "width" in e.stages()]
+
+    def __repr__(self) -> str:
+        return f"Model({self.spec!r}, free={self.param_names})"
+
+    # -- parameters ---------------------------------------------------------------
+    def default_theta(self) -> np.ndarray:
+        """Defaults of the free parameters, shape (k,)."""
+        return np.array([p.default for p in self.params], dtype=float)
+
+    def log_prior(self, theta) -> np.ndarray:
+        """Sum of the parameters' log priors, shape (n_sets,); -inf outside the bounds."""
+        th = self._theta2d(theta)
+        lp = np.zeros(th.shape[0])
+        for j, p in enumerate(self.params):
+            lp = lp + p.log_prior(th[:, j])
+        return lp
+
+    def theta_from(self, values: dict) -> np.ndarray:
+        """theta (k,) from a dict of free-parameter values; missing ones take defaults."""
+        self._check_names(values)
+        return np.array([float(values.get(p.name, p.default)) for p in self.params])
+
+    def with_values(self, values: dict) -> "Model":
+        """A copy whose defaults (free and fixed) are ``values`` (e.g. a TRUTH file):
+        ``m = model.with_values(v); m.predict(ctx, m.default_theta())``."""
+        self._check_names(values)
+        new = Model.__new__(Model)
+        new.__dict__.update(self.__dict__)
+        ps = []
+        for p in self.all_params:
+            if p.name in values:
+                p = p.with_default(p.check_value(values[p.name], where="value: "))
+            ps.append(p)
+        new.all_params = tuple(ps)
+        new.params = tuple(p for p in ps if not p.fixed)
+        return new
+
+    def values(self, theta) -> dict:
+        """All parameter values (free from theta (k,), fixed from defaults) as a dict."""
+        th = self._theta2d(theta)[0]
+        free = dict(zip(self.param_names, th))
+        return {p.name: float(free.get(p.name, p.default)) for p in self.all_params}
+
+    def _check_names(self, values: dict) -> None:
+        names = {p.name for p in self.all_params}
+        unknown = [k for k in values if k not in names]
+        if unknown:
+            raise UserError(f"unknown parameter(s) {', '.join(map(str, unknown))} for model "
+                            f"{self.spec}; known: {', '.join(sorted(names))}")
+
+    def _theta2d(self, theta) -> np.ndarray:
+        th = np.asarray(theta, dtype=float)
+        if th.ndim == 1:
+            th = th[None, :]
+        if th.ndim != 2 or th.shape[1] != len(self.params):
+            raise ValueError(f"theta has shape {np.shape(theta)}, expected (n_sets, {len(self.params)})"
+                             f" for parameters {self.param_names}")
+        return th
+
+    def _pdicts(self, theta) -> list[dict]:
+        """Per effect: local name -> (n_sets, 1) array."""
+        th = self._theta2d(theta)
+        n = th.shape[0]
+        col = {name: j for j, name in enumerate(self.param_names)}
+        byname = {p.name: p for p in self.all_params}
+        out = []
+        for e in self.effects:
+            d = {}
+            for p in e.params:
+                full = f"{e.name}.{p.name}"
+                if full in col:
+                    d[p.name] = th[:, col[full]][:, None]
+                else:
+                    d[p.name] = np.full((n, 1), byname[full].default)
+            out.append(d)
+        return out
+
+    # -- physics ------------------------------------------------------------------
+    def simulate(self, ctx: SimContext, theta, p0_mm=None) -> Simulation:
+        """Run command -> nozzle -> deposit for every parameter set in theta."""
+        th = self._theta2d(theta)
+        n = th.shape[0]
+        pds = self._pdicts(th)
+        ve = np.broadcast_to(ctx.ve_mm_s, (n, len(ctx.dt_s)))
+        for e, p in zip(self.effects, pds):
+            if "command" in e.stages():
+                ve = np.asarray(e.command(ctx, ve, p), dtype=float)
+                if ve.shape != (n, len(ctx.dt_s)):
+                    raise UserError(f"effect {e.name}: command() returned shape {ve.shape}, "
+                                    f"expected {(n, len(ctx.dt_s))}")
+        ve = np.ascontiguousarray(ve, dtype=float)
+        coef = np.tile(_COEF_DEFAULT, (n, 1))
+        for e, p in zip(self.effects, pds):
+            if e.nozzle_term:
+                e.nozzle(p, coef)
+        p0 = np.zeros(n) if p0_mm is None else np.broadcast_to(np.asarray(p0_mm, float), (n,)).copy()
+        out = np.empty_like(ve)
+        vn = np.empty((n, len(ve[0]) + 1))
+        p_end = np.empty(n)
+        x_end = np.zeros(n)
+        if self._linear:
+            K.linear_kernel(ve, ctx.dt_s, np.ascontiguousarray(coef[:, K.C_TAU]),
+                            np.ascontiguousarray(coef[:, K.C_KC]), p0, out, vn, p_end)
+        else:
+            K.general_kernel(ve, ctx.dt_s, ctx.v_head_mm_s, ctx.h_mm, ctx.on_track, coef,
+                             ctx.filament_area_mm2, p0, out, vn, p_end, x_end)
+        area = self._deposit(ctx, out)
+        h = np.broadcast_to(ctx.s_height_mm, area.shape)
+        for e, p in zip(self.effects, pds):
+            if "height" in e.stages():
+                h = np.asarray(e.height(ctx, h, p), dtype=float)
+        h = np.broadcast_to(h, area.shape)
+        w = bead_width_mm(area, np.maximum(h, 1e-6))
+        for e, p in zip(self.effects, pds):
+            if "width" in e.stages():
+                w = np.asarray(e.width(ctx, w, p), dtype=float)
+        w = np.where(ctx.printed, np.maximum(w, 0.0), np.nan)
+        return Simulation(out_mm=out, vn_node_mm_s=vn, ve_mm_s=ve, p_end_mm=p_end, x_end_mm_s=x_end,
+                          widths_mm=w, height_mm=np.array(h), area_mm2=area)
+
+    @staticmethod
+    def _deposit(ctx: SimContext, out: np.ndarray) -> np.ndarray:
+        """Cross-section A_i (mm^2) over the one-nozzle windows (fit/context.py)."""
+        n = out.shape[0]
+        if len(ctx.perm) == 0:
+            return np.zeros((n, ctx.n_samples))
+        dv = out[:, ctx.perm] * ctx.filament_area_mm2
+        c = np.cumsum(dv, axis=1)
+        v_lo = c[:, ctx.lo_pos] - (1.0 - ctx.lo_frac) * dv[:, ctx.lo_pos]
+        v_hi = c[:, ctx.hi_pos] - (1.0 - ctx.hi_frac) * dv[:, ctx.hi_pos]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(ctx.win_mm > 1e-9, (v_hi - v_lo) / np.maximum(ctx.win_mm, 1e-9), 0.0)
+
+    def predict(self, ctx: SimContext, theta) -> np.ndarray:
+        """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed."""
+        return self.simulate(ctx, theta).widths_mm
+
+    def flow(self, ctx: SimContext, theta) -> np.ndarray:
+        """Volumetric nozzle flow q (n_sets, n_t) mm^3/s at the timeline nodes."""
+        return self.simulate(ctx, theta).vn_node_mm_s * ctx.filament_area_mm2
+
+
+def known_effects(extra_effects=()) -> dict[str, type]:
+    reg = dict(REGISTRY)
+    for cls in extra_effects:
+        reg[cls.name] = cls
+    return reg
+
+
+def build_model(spec: str, profile=None, extra_effects=(), fixed: dict | None = None) -> Model:
+    """Compose a model from ``spec`` ("pa+thermal+backpressure").
+
+    ``profile``: PrinterProfile or dict (needed by ``pa_ve``); ``extra_effects``: user
+    Effect classes (:func:`fit.effects.load_effects_file`); ``fixed``: full parameter
+    name -> value to hold fixed. Unknown effect name -> UserError listing the known ones.
+    """
+    reg = known_effects(extra_effects)
+    if not isinstance(spec, str) or not spec.strip():
+        raise UserError(f"empty model spec; name effects joined by '+', from: {', '.join(sorted(reg))}")
+    names = [s.strip() for s in spec.split("+")]
+    bad = [s for s in names if s not in reg]
+    if bad:
+        raise UserError(f"unknown effect(s) {', '.join(repr(b) for b in bad)} in model {spec!r}; "
+                        f"known effects: {', '.join(sorted(reg))}")
+    dup = sorted({s for s in names if names.count(s) > 1})
+    if dup:
+        raise UserError(f"effect(s) {', '.join(dup)} appear twice in model {spec!r}")
+    if "pa" in names and "pa_ve" in names:
+        raise UserError("model uses both pa and pa_ve: they are the same term; keep one")
+    prof = profile_dict(profile)
+    effects = [reg[s](prof) for s in names]
+    return Model(effects, fixed=fixed, spec="+".join(names))
