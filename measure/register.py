@@ -1,0 +1,430 @@
+"""Registration: the mapping from bed mm to image px for one scan or photo.
+
+The mapping is the one of :mod:`measure.camera` (homography H then radial distortion
+k1, k2 about the image centre, OpenCV convention), estimated in three steps:
+
+1. Start: the ArUco DICT_4X4_50 fiducials (docs/ARCHITECTURE.md "Fiducials"), corners
+   refined with CORNER_REFINE_APRILTAG (0.05 px on renders, shared/REFERENCE.md), give
+   point pairs bed corner -> image corner and H by RANSAC (``cv2.findHomography``).
+   Normal markers (light plastic on a dark plate) and inverted ones (dark on light) are
+   both accepted; the mirrored image is tried for a print scanned face down. Without
+   fiducials the user's ``--points`` pairs give the start instead.
+2. Refinement by the track layout: the manifest's tracks drawn through the mapping must
+   lie on the ridge of a "track-likeness" image D (local contrast, polarity folded in,
+   Gaussian-blurred at a coarse-to-fine ladder of scales). ``scipy.optimize.least_squares``
+   (soft-L1 loss) updates the 8 homography entries and k1, k2 to maximise D along the
+   projected centrelines, together with the marker corners (sd 0.3 px) and point hints
+   (weak, sd ~1 % of the image) as extra residuals.
+3. Residual: RMS of the marker corner misfit in mm (fiducials), or of the track-centre
+   offsets found by the edge-pair fit (points only).
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy import ndimage, optimize
+
+from calib.errors import UserError
+from measure.camera import PHONE_FOCAL_FRACTION, Camera, apply_homography, distort_px
+
+#: Corner misfit (px) above which a marker corner is an outlier in RANSAC.
+RANSAC_PX = 4.0
+#: Offset of AprilTag-refined ArUco corners from the pixel-centre convention (px).
+APRILTAG_OFFSET_PX = 0.5
+
+
+@dataclass
+class Registration:
+    """Bed mm -> image px for one image, and how good it is.
+
+    H              3x3 bed mm -> undistorted px
+    distortion     {"center_px": (cx, cy), "f_px": f, "k1": k1, "k2": k2} (measure.camera)
+    residual_mm    registration residual (mm): RMS marker-corner misfit, or RMS track
+                   offset when registered from point hints
+    n_markers      fiducials used
+    mirrored       image is a mirror view of the bed (print scanned face down)
+    method         "fiducials" or "points" (+ "+tracks" when the layout refinement ran)
+    polarity       +1 light plastic on a dark plate, -1 dark on light
+    """
+
+    H: np.ndarray
+    distortion: dict
+    residual_mm: float
+    n_markers: int
+    mirrored: bool
+    method: str
+    image_size: tuple[int, int] = (0, 0)
+    polarity: float = 1.0
+    marker_ids: list = field(default_factory=list)
+    marker_corners_px: list = field(default_factory=list)
+    track_offset_rms_mm: float = float("nan")
+    corner_rms_px: float = float("nan")
+    warnings: list = field(default_factory=list)
+
+    @property
+    def camera(self) -> Camera:
+        d = self.distortion
+        return Camera(H=self.H, image_size=self.image_size, center_px=tuple(d["center_px"]),
+                      f_px=float(d["f_px"]), k1=float(d["k1"]), k2=float(d["k2"]),
+                      mirrored=self.mirrored, kind="registered")
+
+    def project(self, xy_mm) -> np.ndarray:
+        """Bed points (N, 2) mm -> image px (N, 2)."""
+        return self.camera.project(xy_mm)
+
+    def unproject(self, uv_px) -> np.ndarray:
+        return self.camera.unproject(uv_px)
+
+    def px_per_mm(self, xy_mm) -> np.ndarray:
+        return self.camera.px_per_mm(xy_mm)
+
+    def to_dict(self) -> dict:
+        return {"H_mm_to_px": np.asarray(self.H).tolist(),
+                "distortion": {k: (list(map(float, v)) if k == "center_px" else float(v))
+                               for k, v in self.distortion.items()},
+                "residual_mm": float(self.residual_mm), "n_markers": int(self.n_markers),
+                "mirrored": bool(self.mirrored), "method": self.method,
+                "polarity": "light-on-dark" if self.polarity > 0 else "dark-on-light",
+                "marker_ids": [int(i) for i in self.marker_ids],
+                "track_offset_rms_mm": float(self.track_offset_rms_mm),
+                "corner_rms_px": float(self.corner_rms_px)}
+
+
+# -- point hints --------------------------------------------------------------------------
+_NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_PAIR = re.compile(rf"^\s*({_NUM})\s*,\s*({_NUM})\s*=\s*({_NUM})\s*,\s*({_NUM})\s*$")
+
+
+def parse_points(text: str) -> tuple[np.ndarray, np.ndarray]:
+    """``"x_mm,y_mm=u_px,v_px;..."`` -> (bed mm (N, 2), image px (N, 2)); N >= 4 required."""
+    pairs = [p for p in str(text).split(";") if p.strip()]
+    bed, img = [], []
+    for p in pairs:
+        m = _PAIR.match(p)
+        if not m:
+            raise UserError(f"--points: cannot read {p.strip()!r}; write pairs as "
+                            "\"x_mm,y_mm=u_px,v_px;...\" (bed mm = image pixel)")
+        x, y, u, v = map(float, m.groups())
+        bed.append((x, y))
+        img.append((u, v))
+    if len(bed) < 4:
+        raise UserError(f"--points: {len(bed)} point pair(s) given, at least 4 are needed "
+                        "(e.g. the four corners of the pattern)")
+    bed, img = np.array(bed), np.array(img)
+    if _area(bed) < 1e-6 * max(1.0, np.ptp(bed, axis=0).prod()) or np.ptp(bed, axis=0).min() == 0:
+        raise UserError("--points: the bed points are (nearly) on one line; pick points spread over the pattern")
+    return bed, img
+
+
+def _area(p):
+    hull = cv2.convexHull(p.astype(np.float32))
+    return float(cv2.contourArea(hull))
+
+
+# -- fiducials ----------------------------------------------------------------------------
+def detect_markers(gray) -> tuple[list[int], list[np.ndarray]]:
+    """ArUco DICT_4X4_50 markers in a gray image: (ids, corners (4, 2) px each).
+
+    Dark plastic on a light plate gives inverted markers; ``detectInvertedMarker`` misses
+    them when the printed quiet frame is present, so the negative image is searched as
+    well. Corners are refined with the AprilTag method, whose output is offset by
+    (+0.5, +0.5) px from OpenCV's pixel-centre convention (shared/REFERENCE.md); we
+    remove that offset.
+    """
+    g8 = _to_u8(gray)
+    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    p = cv2.aruco.DetectorParameters()
+    p.detectInvertedMarker = True
+    p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
+    det = cv2.aruco.ArucoDetector(d, p)
+    found: dict[int, np.ndarray] = {}
+    for img in (g8, 255 - g8):
+        corners, ids, _ = det.detectMarkers(img)
+        if ids is None:
+            continue
+        for i, c in zip(ids.ravel(), corners):
+            found.setdefault(int(i), c.reshape(4, 2).astype(float) - APRILTAG_OFFSET_PX)
+        if len(found) >= 4:
+            break
+    ids = sorted(found)
+    return ids, [found[i] for i in ids]
+
+
+def _to_u8(gray):
+    g = np.asarray(gray)
+    if g.dtype == np.uint8:
+        return g
+    return np.clip(g * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _match(manifest, ids, corners):
+    fid = {f.id: np.asarray(f.corners_mm, float).reshape(4, 2) for f in manifest.fiducials}
+    bed, img, used = [], [], []
+    for i, c in zip(ids, corners):
+        if i in fid and i not in used:
+            bed.append(fid[i])
+            img.append(c)
+            used.append(i)
+    return used, bed, img
+
+
+# -- the mapping parametrisation ----------------------------------------------------------
+class _Mapping:
+    """H (normalised, 8 free entries) and k1, k2 as one parameter vector for least_squares."""
+
+    def __init__(self, H0, image_size, with_distortion: bool, bed_pts):
+        W, Hh = image_size
+        self.center = np.array([(W - 1) / 2, (Hh - 1) / 2])
+        self.f = PHONE_FOCAL_FRACTION * max(W, Hh)
+        mb = bed_pts.mean(axis=0)
+        sb = max(np.ptp(bed_pts, axis=0).max() / 2, 1.0)
+        si = max(W, Hh) / 2
+        self.Tb = np.array([[1 / sb, 0, -mb[0] / sb], [0, 1 / sb, -mb[1] / sb], [0, 0, 1]])
+        self.Ti = np.array([[1 / si, 0, -self.center[0] / si], [0, 1 / si, -self.center[1] / si], [0, 0, 1]])
+        self.Tii = np.linalg.inv(self.Ti)
+        Hn = self.Ti @ H0 @ np.linalg.inv(self.Tb)
+        self.Hn0 = Hn / Hn[2, 2]
+        self.with_distortion = with_distortion
+
+    def x0(self, k1=0.0, k2=0.0):
+        x = np.zeros(8)
+        return np.concatenate([x, [k1, k2]]) if self.with_distortion else x
+
+    def H(self, x):
+        D = np.zeros(9)
+        D[:8] = x[:8]
+        Hn = self.Hn0 + D.reshape(3, 3)
+        return self.Tii @ Hn @ self.Tb
+
+    def k(self, x):
+        return (x[8], x[9]) if self.with_distortion else (0.0, 0.0)
+
+    def project(self, x, xy):
+        uv = apply_homography(self.H(x), xy)
+        k1, k2 = self.k(x)
+        if k1 or k2:
+            uv = distort_px(uv, self.center, self.f, k1, k2)
+        return uv
+
+
+def _undistorted_homography(bed, img, center, f, k1, k2, ransac: bool):
+    from measure.camera import undistort_px
+    u = undistort_px(img, center, f, k1, k2) if (k1 or k2) else img
+    if ransac and len(bed) >= 8:
+        H, mask = cv2.findHomography(bed, u, cv2.RANSAC, RANSAC_PX)
+    else:
+        H, mask = cv2.findHomography(bed, u, 0)
+    if H is None:
+        return None, np.zeros(len(bed), bool)
+    return H, (mask.ravel() > 0) if mask is not None else np.ones(len(bed), bool)
+
+
+# -- layout points and the track-likeness image -------------------------------------------
+def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 4000):
+    """Points (N, 2) mm on the centrelines of all extruding tracks, and their widths (mm)."""
+    pts, wid = [], []
+    total = sum(tr.length_mm for tr in manifest.tracks if tr.kind != "label")
+    step = max(spacing_mm, total / max_points) if total > 0 else spacing_mm
+    for tr in manifest.tracks:
+        if tr.length_mm <= 0 or tr.kind == "label":
+            continue
+        s = np.arange(0.0, tr.length_mm + 1e-9, step)
+        w = tr.interp("width_mm", s)
+        keep = w > 0
+        if keep.any():
+            pts.append(tr.at(s[keep])[0])
+            wid.append(w[keep])
+    if not pts:
+        raise UserError("the manifest has no extruding tracks to register against; "
+                        "is it the manifest of this print?")
+    return np.concatenate(pts), np.concatenate(wid)
+
+
+def _track_image(gray, polarity, sigma_px, bg_sigma_px):
+    """Local-contrast image, polarity folded in (tracks positive), blurred by sigma_px.
+
+    Returns (image, downscale factor); coordinates in it are px / factor.
+    """
+    factor = max(1, int(sigma_px // 2))
+    g = gray if factor == 1 else cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor),
+                                            interpolation=cv2.INTER_AREA)
+    sb = max(bg_sigma_px / factor, 2.0)
+    mean = cv2.GaussianBlur(g, (0, 0), sb)
+    var = cv2.GaussianBlur((g - mean) ** 2, (0, 0), sb)
+    d = polarity * (g - mean) / np.sqrt(var + 1e-6)
+    s = sigma_px / factor
+    if s > 0.3:
+        d = cv2.GaussianBlur(d, (0, 0), s)
+    return d.astype(np.float32), factor
+
+
+def _sample(img, uv, factor=1, order=1):
+    coords = np.array([uv[:, 1] / factor, uv[:, 0] / factor])
+    return ndimage.map_coordinates(img, coords, order=order, mode="constant", cval=0.0)
+
+
+def estimate_polarity(gray, project, pts, wid, px_per_mm) -> tuple[float, float]:
+    """(+1 light-on-dark or -1, contrast in sd units) from centreline vs. beside-the-track.
+
+    Compares the image at the track centre with the image 1 mm + w/2 to each side; the
+    median difference over all points decides, its robust z-score says how clear it is.
+    """
+    uv = project(pts)
+    # Side points along the image-space diagonal are good enough for a sign decision.
+    off = (np.asarray(wid) / 2 + 1.0) * px_per_mm
+    a = _sample(gray, uv)
+    b1 = _sample(gray, uv + off[:, None] * np.array([0.7071, 0.7071]))
+    b2 = _sample(gray, uv - off[:, None] * np.array([0.7071, 0.7071]))
+    d = a - 0.5 * (b1 + b2)
+    inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < gray.shape[1] - 1) & (uv[:, 1] < gray.shape[0] - 1)
+    d = d[inside]
+    if len(d) < 10:
+        return 1.0, 0.0
+    med = float(np.median(d))
+    mad = float(np.median(np.abs(d - med))) * 1.4826 + 1e-6
+    return (1.0 if med >= 0 else -1.0), abs(med) / mad * np.sqrt(len(d)) / 10
+
+
+# -- the registration ---------------------------------------------------------------------
+def register(image, manifest, points=None, *, refine: bool = True,
+             distortion: bool | None = None) -> Registration:
+    """Bed mm -> image px for ``image`` (gray float 0..1, or uint8) showing ``manifest``'s print.
+
+    points      optional point hints: text ``"x,y=u,v;..."`` or (bed (N, 2), img (N, 2)).
+    refine      run the track-layout refinement (step 2 of the module docstring).
+    distortion  estimate k1, k2: None = only when the image looks like a photo (marker
+                corners misfit a pure homography by > 0.5 px, or point hints are used).
+    Raises UserError when there is nothing to register with or it fails.
+    """
+    gray = np.asarray(image, dtype=np.float32)
+    if gray.ndim == 3:
+        gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+    if gray.max() > 1.5:
+        gray = gray / 255.0
+    Hh, W = gray.shape
+    size = (W, Hh)
+    warnings: list[str] = []
+    hint_bed = hint_img = None
+    if points is not None:
+        hint_bed, hint_img = parse_points(points) if isinstance(points, str) else (
+            np.asarray(points[0], float), np.asarray(points[1], float))
+
+    ids, corners = detect_markers(gray)
+    used, bed_c, img_c = _match(manifest, ids, corners)
+    mirrored = False
+    if len(used) < 4 and manifest.fiducials:
+        flipped = np.ascontiguousarray(gray[:, ::-1])
+        ids_m, corners_m = detect_markers(flipped)
+        used_m, bed_m, img_m = _match(manifest, ids_m, corners_m)
+        if len(used_m) > len(used):
+            mirrored = True
+            ids, used, bed_c = ids_m, used_m, bed_m
+            # back to original image coordinates; the corner order reverses with the flip
+            img_c = [np.column_stack([W - 1 - c[:, 0], c[:, 1]]) for c in img_m]
+    method = None
+    bed_pts = img_pts = None
+    if len(used) >= 2:
+        method = "fiducials"
+        bed_pts, img_pts = np.concatenate(bed_c), np.concatenate(img_c)
+        if len(used) < 4 and hint_bed is None:
+            warnings.append(f"only {len(used)} fiducial(s) found; registration is less certain")
+    elif hint_bed is not None:
+        method = "points"
+    else:
+        expected = sorted(f.id for f in manifest.fiducials)
+        if not manifest.fiducials:
+            raise UserError("the manifest has no fiducials (third-party print); give >= 4 point pairs "
+                            "with --points \"x_mm,y_mm=u_px,v_px;...\"")
+        if ids and not used:
+            raise UserError(f"the image shows ArUco marker(s) {sorted(set(ids))} but the manifest expects "
+                            f"{expected}: is it a picture of another pattern?")
+        raise UserError(f"found {len(used)} of the pattern's {len(expected)} fiducials (need >= 2): "
+                        "check the whole print is in the picture, in focus and without glare, "
+                        "or give --points \"x_mm,y_mm=u_px,v_px;...\"")
+
+    center = np.array([(W - 1) / 2, (Hh - 1) / 2])
+    f_px = PHONE_FOCAL_FRACTION * max(W, Hh)
+    if method == "fiducials":
+        H0, inl = _undistorted_homography(bed_pts, img_pts, center, f_px, 0, 0, ransac=True)
+        if H0 is None or inl.sum() < 8:
+            raise UserError("the fiducials found do not fit one plane mapping; "
+                            "photograph the print flat and whole, or give --points")
+        bed_pts, img_pts = bed_pts[inl], img_pts[inl]
+        rms0 = float(np.sqrt(np.mean(np.sum((apply_homography(H0, bed_pts) - img_pts) ** 2, axis=1))))
+    else:
+        H0, _ = _undistorted_homography(hint_bed, hint_img, center, f_px, 0, 0, ransac=False)
+        if H0 is None:
+            raise UserError("--points: cannot compute a mapping from these pairs; check them")
+        rms0 = np.inf
+    if distortion is None:
+        distortion = method == "points" or rms0 > 0.5
+    lay_pts, lay_w = layout_points(manifest)
+    mp = _Mapping(H0, size, distortion, lay_pts)
+    x = mp.x0()
+    # Sanity: the layout must fall inside the image.
+    uv0 = mp.project(x, lay_pts)
+    inside = ((uv0[:, 0] > -0.05 * W) & (uv0[:, 0] < 1.05 * W) & (uv0[:, 1] > -0.05 * Hh)
+              & (uv0[:, 1] < 1.05 * Hh))
+    if inside.mean() < 0.5:
+        raise UserError(f"only {inside.mean():.0%} of the pattern's tracks fall inside the image with this "
+                        "registration; check --points (x_mm,y_mm=u_px,v_px) or that the manifest matches")
+    scale = float(np.median(Camera(H=H0, image_size=size).px_per_mm(lay_pts[::max(1, len(lay_pts) // 200)])))
+    polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, scale)
+
+    if refine:
+        x = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale,
+                    (bed_pts, img_pts) if method == "fiducials" else None,
+                    (hint_bed, hint_img) if hint_bed is not None else None, method)
+        method += "+tracks"
+        # Polarity again on the refined mapping (the hint start may have been too far off).
+        polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, scale)
+    k1, k2 = mp.k(x)
+    reg = Registration(H=mp.H(x) / mp.H(x)[2, 2],
+                       distortion={"center_px": tuple(center), "f_px": f_px, "k1": float(k1), "k2": float(k2)},
+                       residual_mm=float("nan"), n_markers=len(used), mirrored=mirrored, method=method,
+                       image_size=size, polarity=polarity, marker_ids=list(used),
+                       marker_corners_px=[c for c in img_c] if used else [], warnings=warnings)
+    if method.startswith("fiducials"):
+        cam = reg.camera
+        err_px = np.sqrt(np.sum((cam.project(bed_pts) - img_pts) ** 2, axis=1))
+        reg.corner_rms_px = float(np.sqrt(np.mean(err_px ** 2)))
+        reg.residual_mm = float(np.sqrt(np.mean((err_px / cam.px_per_mm(bed_pts)) ** 2)))
+    return reg
+
+
+def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method):
+    """Track-layout refinement (module docstring, step 2); returns the new parameter vector."""
+    W = gray.shape[1]
+    w_med = float(np.median(lay_w))
+    if method == "points":
+        ladder_mm = [2.0, 1.0, 0.5, 0.25, max(0.1, w_med / 3)]
+    else:
+        ladder_mm = [0.5, 0.25, max(0.1, w_med / 3)]
+    sig_c = 0.3                       # px, AprilTag corner noise
+    sig_h = 0.01 * W                  # px, a click on a phone photo
+    for sig_mm in ladder_mm:
+        sig_px = max(0.7, sig_mm * scale)
+        D, fac = _track_image(gray, polarity, sig_px, bg_sigma_px=max(3 * sig_px, 2.5 * w_med * scale))
+        n = len(lay_pts)
+        # Each layout point counts as ~1/20 of a corner so that a mis-registered marker
+        # cannot be overruled by a long track, yet tracks set what corners leave open.
+        wt = np.sqrt(max(1.0, 0.05 * (len(corners[0]) if corners else 4) * 20 / n * 20))
+
+        def resid(xx):
+            uv = mp.project(xx, lay_pts)
+            r = [wt * (1.0 - _sample(D, uv, fac)) / np.sqrt(n) * 10]
+            if corners is not None:
+                r.append(((mp.project(xx, corners[0]) - corners[1]) / sig_c).ravel())
+            if hints is not None:
+                r.append(((mp.project(xx, hints[0]) - hints[1]) / (sig_h if corners is None else 10 * sig_h)).ravel())
+            if mp.with_distortion:
+                r.append(np.array([xx[8] / 0.2, xx[9] / 0.2]))   # prior: |k| of real lenses < ~0.2
+            return np.concatenate(r)
+
+        sol = optimize.least_squares(resid, x, loss="soft_l1", f_scale=1.0, x_scale="jac",
+                                     diff_step=1e-6, max_nfev=60)
+        x = sol.x
+    return x
