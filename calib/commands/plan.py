@@ -1,0 +1,60 @@
+"""`calib plan OTHER.gcode --printer P.toml -o OTHER.manifest.json`: a manifest for any G-code."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from calib.errors import UserError
+from patterns.manifest import manifest_path_for, timeline_path_for
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "plan",
+        help="build a manifest (tracks, widths, planned timeline) from any G-code",
+        description="Parse G-code (ours or a slicer's / third party's), plan its motion with the "
+                    "printer's firmware model (trapezoids, look-ahead, junction speeds) and write "
+                    "NAME.manifest.json plus the sampled timeline NAME.timeline.npz, so the print "
+                    "can be measured and fitted. Unlabelled G-code: every run of extruding moves "
+                    "at one height becomes a track.")
+    p.add_argument("gcode", help="G-code file to plan")
+    p.add_argument("--printer", required=True,
+                   help="printer profile: a .toml path or a shipped name (e.g. adventurer3, "
+                        "long_bowden, direct_drive, ender3)")
+    p.add_argument("-o", "--output", default=None,
+                   help="manifest path (default: GCODE name with .manifest.json)")
+    p.add_argument("--layer-height-mm", type=float, default=None,
+                   help="bead height (mm) for every track; default: from the z levels")
+    p.add_argument("--min-test-length-mm", type=float, default=3.0,
+                   help="unlabelled extrusion runs shorter than this (mm) are kind 'other' "
+                        "(default 3.0)")
+    return p
+
+
+def run(args) -> int:
+    from patterns.plan import manifest_from_gcode
+    from patterns.profile import load_profile
+
+    src = Path(args.gcode)
+    if not src.is_file():
+        raise UserError(f"G-code file {src} does not exist")
+    if args.layer_height_mm is not None and not args.layer_height_mm > 0:
+        raise UserError(f"--layer-height-mm must be > 0, got {args.layer_height_mm}")
+    profile = load_profile(args.printer)
+    try:
+        data = src.read_bytes()
+    except OSError as exc:
+        raise UserError(f"cannot read {src}: {exc}") from None
+    man = manifest_from_gcode(data, profile, {"name": "gcode", "source": src.name},
+                              layer_height_mm=args.layer_height_mm,
+                              min_test_length_mm=args.min_test_length_mm)
+    man.gcode = src.name
+    out = Path(args.output) if args.output else manifest_path_for(src)
+    man.save(out)
+    for w in man.pattern.get("warnings", []):
+        print(f"calib plan: warning: {w}", file=sys.stderr)
+    n_test = len(man.test_tracks())
+    print(f"{out}: {len(man.tracks)} tracks ({n_test} test), "
+          f"{man.pattern['planned_duration_s']:.1f} s planned; timeline {timeline_path_for(out)}")
+    return 0
