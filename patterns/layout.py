@@ -191,3 +191,34 @@ def steps_angles_spread(angles_rad) -> float:
     """Mean resultant length R of angles (0 = evenly spread, 1 = all at one angle)."""
     a = np.asarray(angles_rad, dtype=float)
     return float(np.hypot(np.cos(a).mean(), np.sin(a).mean())) if len(a) else 0.0
+
+
+# -- rows (straight-line patterns: stop-mid-path, retract) ---------------------------
+ROW_LABEL_H_MM = 3.0
+ROW_LABEL_GAP_MM = 4.0
+
+
+def place_rows(profile, pattern, rows, *, pitch_mm=4.5, group_gap_mm=2.0, hint=""):
+    """Stack rows (label on the left, straight test line in +x to its right) top to bottom.
+
+    rows: dicts with ``label``, ``length_mm``, ``group``; adds ``label_xy`` (lower-left of
+    the label) and ``start_xy`` (line start) to each and returns the :class:`Frame`.
+    Rows are ``pitch_mm`` apart, groups another ``group_gap_mm``.
+    """
+    from patterns import font
+
+    label_w = max(font.text_width_mm(r["label"], ROW_LABEL_H_MM) for r in rows)
+    line_w = max(r["length_mm"] for r in rows)
+    n_gaps = sum(1 for a, b in zip(rows, rows[1:]) if a["group"] != b["group"])
+    content_w = label_w + ROW_LABEL_GAP_MM + line_w + 1.0
+    content_h = len(rows) * pitch_mm + n_gaps * group_gap_mm
+    frame = make_frame(profile, pattern, content_w, content_h, hint)
+    x0, _, _, y1 = frame.content_mm
+    y = y1 - pitch_mm / 2
+    for i, r in enumerate(rows):
+        if i and rows[i - 1]["group"] != r["group"]:
+            y -= group_gap_mm
+        r["label_xy"] = (x0, y - ROW_LABEL_H_MM / 2)
+        r["start_xy"] = (x0 + label_w + ROW_LABEL_GAP_MM, y)
+        y -= pitch_mm
+    return frame
