@@ -22,8 +22,10 @@ The commanded extruder velocity ``ve`` is piecewise constant over each timeline 
 * :func:`linear_kernel` (pa + offset only): the exact solution of the piecewise-linear
   ODE, including the instant where P crosses Kc (flow stops / starts) inside an interval.
 * :func:`general_kernel`: an exponentially fitted theta scheme
-  P1 = P0 + dt*(ve + a X0) - (1 + a) dt [(1-th) vn0 + th vn1],  P1 = Preq(vn1),
-  th = 1/(1 - exp(-r)) - 1/r,  r = (1 + a) dt / tau_loc,  tau_loc = dPreq/dvn.
+  P1 = P0 + dt*ve + a' X0 - (dt + a') [(1-th) vn0 + th vn1],  P1 = Preq(vn1),
+  th = 1/(1 - exp(-r)) - 1/r,  r = (dt + a') / tau_loc,  tau_loc = dPreq/dvn,
+  a' = a * tau_th * (1 - exp(-dt/tau_th))  (~ a*dt; makes the thermal source exactly
+  a*tau_th*(X0 - X1), so its total over a print is -a*tau_th*X_end).
   For a linear Preq this reproduces the exact exponential step (so direct drive tau =
   0.02 s with dt = 5 ms is exact and stable); for nonlinear Preq it is second order in
   dt/tau_loc and L-stable (th -> 1 as r -> inf). The implicit equation is monotone in
@@ -169,20 +171,25 @@ def general_kernel(ve, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_
             v = ve[i, k]
             vh = vhead[k]
             onk = on[k]
+            # Thermal source over the step, a*(X - vn)*dt, written as a*tau_th*(X0 - X1)
+            # with X updated exactly for the mean outflow: conserves volume exactly.
+            eth = math.exp(-h / tauth)
+            ah = a * tauth * (1.0 - eth)
+            hh = h + ah
             # Local time constant at a representative outflow (vn0, or the command at a start).
             vloc = vn0
             if vloc < 1e-6:
                 vloc = max(0.5 * v, 1e-6)
             _, dloc = _preq(vloc, c, af, vh, hgt[k], onk)
-            r = (1.0 + a) * h / max(dloc, 1e-12)
+            r = hh / max(dloc, 1e-12)
             if r < 1e-4:
                 th = 0.5 + r / 12.0
             elif r > 50.0:
                 th = 1.0 - 1.0 / r
             else:
                 th = 1.0 / (1.0 - math.exp(-r)) - 1.0 / r
-            b = p + h * (v + a * xth) - (1.0 + a) * h * (1.0 - th) * vn0
-            cc = (1.0 + a) * h * th
+            b = p + h * v + ah * xth - hh * (1.0 - th) * vn0
+            cc = hh * th
             if b <= _preq0(c, vh, onk):
                 vn1 = 0.0
                 p1 = b
@@ -209,7 +216,7 @@ def general_kernel(ve, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_
                 p1 = b - cc * vn1
             vbar = (1.0 - th) * vn0 + th * vn1
             out[i, k] = vbar * h
-            xth = vbar + (xth - vbar) * math.exp(-h / tauth)
+            xth = vbar + (xth - vbar) * eth
             p = p1
             vn0 = vn1
             vn_node[i, k + 1] = vn1
