@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fit.geometry import bead_area_mm2
+from fit.geometry import bead_area_mm2, bead_width_mm
 from patterns import font
 from patterns.fiducials import FiducialPlan, corner_origins, plan_fiducial
 from patterns.gcode_writer import GcodeWriter
@@ -251,6 +251,7 @@ class PatternBuilder:
             rec = self._recs.get(tr.id)
             if rec is not None:
                 tr.kind, tr.group, tr.params = rec.kind, rec.group, dict(rec.params)
+                _set_height(tr, rec.heights[0])
         manifest.fiducials = list(self.fiducial_list)
         manifest.labels = list(self.labels)
         manifest.ruler = dict(self.ruler_info)
@@ -265,6 +266,21 @@ class PatternBuilder:
                              flow_mm3_s=np.array(r.flows), z_mm=float(r.heights[0]),
                              group=r.group, params=dict(r.params)))
         return out
+
+
+def _set_height(tr: Track, h_mm: float) -> None:
+    """Give a planned track the layer height the pattern printed it at.
+
+    The planner guesses heights from z levels (right for third-party G-code); the pattern
+    knows them. The commanded area A = bead_area(w, h) is what the G-code fixes, so the
+    width is re-derived from the planner's A at the known height (flow is unchanged).
+    """
+    if np.allclose(tr.height_mm, h_mm):
+        return
+    area = bead_area_mm2(tr.width_mm, tr.height_mm)
+    tr.width_mm = np.where(tr.width_mm > 0, bead_width_mm(area, h_mm), 0.0)
+    tr.height_mm = np.full(len(tr.points_mm), float(h_mm))
+    tr.z_mm = float(h_mm)
 
 
 def _registry() -> dict:
