@@ -1,0 +1,213 @@
+"""Which physical effect is the model missing? Residual structure, candidate effects, a verdict.
+
+Three pieces of evidence (shared/REFERENCE.md "Finding a missing term"):
+
+1. Residual structure: the fitted model's residuals scored against physical covariates
+   of the timeline (:mod:`fit.covariates`), best first.
+2. Candidate effects: every library effect not in the model (and every user effect from
+   ``--effects``) is added in turn and fitted by maximum likelihood; candidates are
+   ranked by the drop in BIC, Delta BIC = BIC(model) - BIC(model + effect) (> 10 is
+   "very strong" on the Kass & Raftery 1995 scale). Because residuals of a wrong model
+   are correlated along a track, the drop is also given scaled by n_eff / n
+   (:func:`fit.compare.effective_n`), and the verdict uses the scaled value.
+   Optionally the top few are confirmed by a full fit and PSIS-LOO.
+3. The verdict: the most likely missing effect, the covariate evidence that agrees with
+   it, RMS and reduced chi-square before and after, and the command that fits it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fit.compare import FitSummary, Observed, mcmc_fit, ml_fit, _warm_start
+from fit.covariates import CovariateScore, Covariates, compute_covariates, score_covariates
+
+#: Effects never proposed as "missing": firmware_pa is a known input transform (it is
+#: what the firmware was told to do, read from the G-code), not physics to discover.
+NOT_CANDIDATES = frozenset({"firmware_pa"})
+
+#: The covariates each library effect leaves its mark on (for the verdict's evidence).
+EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
+    "pa": ("time_since_flow_change_s", "flow_step_mm3_s", "accel_mm_s2"),
+    "thermal": ("time_since_stop_s", "last_stop_duration_s", "time_since_flow_change_s"),
+    "backpressure": ("width_nominal_mm", "flow_step_mm3_s"),
+    "nonlinear": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
+    "bernoulli": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
+    "backlash": ("time_since_stop_s", "time_since_flow_change_s", "e_mm"),
+    "offset": ("time_since_stop_s", "flow_mm3_s"),
+    "flow_gain": ("width_nominal_mm", "flow_mm3_s"),
+    "bed_tilt": ("x_mm", "y_mm"),
+    "heading": ("heading_rad",),
+}
+
+#: Delta BIC (scaled by n_eff/n) above which an effect is called supported.
+SUPPORTED_DELTA_BIC = 10.0
+
+
+@dataclass
+class Candidate:
+    """One effect added to the model and fitted.
+
+    delta_bic = BIC(model) - BIC(model + effect) (positive: the effect helps);
+    delta_bic_eff = delta_bic * n_eff / n; rms_mm_after, chi2_nu_after: of the extended fit.
+    """
+
+    effect: str
+    spec: str
+    delta_bic: float
+    delta_bic_eff: float
+    rms_mm_after: float
+    chi2_nu_after: float
+    user: bool = False
+    fit: FitSummary | None = field(default=None, repr=False)
+    delta_elpd_loo: float = float("nan")
+    delta_elpd_loo_se: float = float("nan")
+    error: str = ""
+
+
+@dataclass
+class Diagnosis:
+    model: str
+    base: FitSummary
+    covariates: list[CovariateScore]
+    candidates: list[Candidate]
+    cov: Covariates = field(repr=False)
+    verdict: str = ""
+    command: str = ""
+    best: str | None = None
+
+    def to_json(self) -> dict:
+        def num(x):
+            x = float(x)
+            return x if np.isfinite(x) else None
+        return {
+            "schema": "calib.diagnose/1",
+            "model": self.model,
+            "rms_mm": num(self.base.rms_mm),
+            "chi2_nu": num(self.base.chi2_nu),
+            "bic": num(self.base.bic),
+            "n": self.base.n,
+            "n_eff": num(self.base.n_eff),
+            "params": self.base.params(),
+            "candidates": [{"effect": c.effect, "spec": c.spec, "delta_bic": num(c.delta_bic),
+                            "delta_bic_eff": num(c.delta_bic_eff),
+                            "rms_mm_after": num(c.rms_mm_after), "chi2_nu_after": num(c.chi2_nu_after),
+                            "delta_elpd_loo": num(c.delta_elpd_loo),
+                            "delta_elpd_loo_se": num(c.delta_elpd_loo_se),
+                            "user": c.user, **({"error": c.error} if c.error else {})}
+                           for c in self.candidates],
+            "covariates": [{"name": s.name, "score": num(s.score), "r2": num(s.r2),
+                            "p_value": num(s.p_value)} for s in self.covariates],
+            "best": self.best,
+            "verdict": self.verdict,
+            "command": self.command,
+        }
+
+
+def split_spec(spec: str) -> list[str]:
+    return [p.strip() for p in spec.split("+") if p.strip()]
+
+
+def candidate_names(spec: str, library: list[str], user: list[str] = ()) -> list[str]:
+    """Effects to try: library effects not in ``spec`` (minus NOT_CANDIDATES), then user ones."""
+    have = set(split_spec(spec))
+    if have & {"pa", "pa_ve"}:
+        have |= {"pa", "pa_ve"}  # the same term in two parameterisations
+    out = [n for n in library if n not in have and n not in NOT_CANDIDATES]
+    out += [n for n in user if n not in have and n not in out]
+    return out
+
+
+def diagnose(obs: Observed, spec: str, build, library: list[str], user: list[str] = (),
+             confirm_top: int = 0, seed: int = 0, n_null: int = 200, progress: bool = False,
+             base: FitSummary | None = None, command_prefix: str = "calib fit WIDTHS --manifest M",
+             effects_arg: str = "") -> Diagnosis:
+    """Diagnose ``spec`` on ``obs``.
+
+    build(spec) -> Model (e.g. ``lambda s: build_model(s, profile, extra_effects)``);
+    library: names of library effects (``fit.effects.REGISTRY``); user: names of user
+    effects. ``confirm_top`` > 0 runs a full fit (emcee + PSIS-LOO) of the base model and
+    of that many best candidates.
+    """
+    from tqdm import tqdm
+
+    model = build(spec)
+    if base is None:
+        base = ml_fit(model, obs, spec=spec, seed=seed)
+    smp = obs.samples
+    cov = compute_covariates(obs.manifest, smp.track, smp.s_mm, smp.t_s, smp.x_mm, smp.y_mm)
+    std_resid = base.resid_mm
+    scores = score_covariates(std_resid, cov, track=smp.track, n_null=n_null, seed=seed)
+
+    names = candidate_names(spec, library, user)
+    cands: list[Candidate] = []
+    for name in tqdm(names, desc="candidates", disable=not progress):
+        ext = f"{spec}+{name}"
+        try:
+            m = build(ext)
+            f = ml_fit(m, obs, spec=ext, theta0=_warm_start(m, [base]), seed=seed)
+        except Exception as exc:  # a user effect that fails must not hide the others
+            if name not in user:
+                raise
+            cands.append(Candidate(name, ext, float("nan"), float("nan"), float("nan"),
+                                   float("nan"), user=True, error=f"{type(exc).__name__}: {exc}"))
+            continue
+        d = base.bic - f.bic
+        scale = base.n_eff / base.n if np.isfinite(base.n_eff) and base.n else 1.0
+        cands.append(Candidate(name, ext, d, d * scale, f.rms_mm, f.chi2_nu, user=name in user, fit=f))
+    cands.sort(key=lambda c: -c.delta_bic if np.isfinite(c.delta_bic) else np.inf)
+
+    if confirm_top and cands:
+        base_full = mcmc_fit(model, obs, base, seed=seed)
+        for c in cands[:confirm_top]:
+            if c.fit is None:
+                continue
+            c.fit = mcmc_fit(build(c.spec), obs, c.fit, seed=seed)
+            d = c.fit.elpd_i - base_full.elpd_i
+            c.delta_elpd_loo = float(np.sum(d))
+            c.delta_elpd_loo_se = float(np.sqrt(len(d) * np.var(d)))
+        base = base_full
+
+    diag = Diagnosis(model=spec, base=base, covariates=scores, candidates=cands, cov=cov)
+    _verdict(diag, command_prefix, effects_arg)
+    return diag
+
+
+def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
+    b = d.base
+    top_cov = d.covariates[0] if d.covariates else None
+    cov_txt = (f"the residuals line up best with {top_cov.name} (explains "
+               f"{100 * top_cov.score:.0f} % of the residual variance beyond chance, p = "
+               f"{top_cov.p_value:.3g})") if top_cov and top_cov.score > 0 else \
+        "no covariate explains the residuals better than chance"
+    head = (f"Model {d.model}: RMS {1000 * b.rms_mm:.1f} um, reduced chi-square {b.chi2_nu:.2f} "
+            f"over {b.n} samples (n_eff {b.n_eff:.0f}).")
+    ok = [c for c in d.candidates if np.isfinite(c.delta_bic_eff)]
+    best = ok[0] if ok else None
+    if best is not None and best.delta_bic_eff > SUPPORTED_DELTA_BIC:
+        d.best = best.effect
+        agree = [s for s in d.covariates[:5] if s.name in EFFECT_COVARIATES.get(best.effect, ())]
+        ev = (f"; consistent with the residual pattern: {agree[0].name} scores {agree[0].score:.2f}"
+              if agree else f"; {cov_txt}")
+        runner = ""
+        if len(ok) > 1:
+            runner = f" Next best: {ok[1].effect} (Delta BIC {ok[1].delta_bic:.1f})."
+        d.command = f"{command_prefix} --model {best.spec}{effects_arg}"
+        loo = ""
+        if np.isfinite(best.delta_elpd_loo):
+            loo = f", PSIS-LOO gains {best.delta_elpd_loo:.1f} +- {best.delta_elpd_loo_se:.1f}"
+        d.verdict = (f"{head} Most likely missing: {best.effect}. Adding it lowers BIC by "
+                     f"{best.delta_bic:.1f} ({best.delta_bic_eff:.1f} after the correlation "
+                     f"correction){loo}{ev}. RMS falls from {1000 * b.rms_mm:.1f} to "
+                     f"{1000 * best.rms_mm_after:.1f} um, reduced chi-square from {b.chi2_nu:.2f} "
+                     f"to {best.chi2_nu_after:.2f}.{runner} Fit it with: {d.command}")
+    elif b.chi2_nu > 1.5 and top_cov is not None and top_cov.score > 0.05:
+        d.verdict = (f"{head} No effect in the library improves the fit enough (best Delta BIC "
+                     f"{best.delta_bic:.1f} for {best.effect}). " if best else f"{head} ") + \
+            (f"But {cov_txt}: something that depends on {top_cov.name} is missing. Write it as "
+             "your own effect (docs/DISCOVER.md) and pass it with --effects.")
+    else:
+        d.verdict = (f"{head} No missing effect is supported (best Delta BIC "
+                     f"{best.delta_bic:.1f} for {best.effect}); {cov_txt}." if best else
+                     f"{head} No candidate effects to try.")
