@@ -177,7 +177,7 @@ def _junction_v2(p: PrinterProfile, dot, a_cur, a_prev, L_cur, L_prev) -> np.nda
             v2 = np.minimum(v2, cent)
         else:
             v2 = R * jd * a_cur
-    v2 = np.where(cos_t2 <= 1e-12, 0.0, v2)   # full reversal
+    # a full reversal has sin(theta/2) = 0, hence R = 0 and v2 = 0: it stops
     return np.nan_to_num(v2, nan=0.0, posinf=np.inf)
 
 

@@ -1,0 +1,147 @@
+"""Motion planner against analytic trapezoids, published junction formulas, volume balance."""
+import math
+
+import numpy as np
+import pytest
+
+from patterns.gcode_parser import parse_gcode
+from patterns.planner import junction_speed_klipper_mm_s, plan, plan_gcode, plan_moves
+from patterns.profile import load_profile, profile_from_dict
+
+
+def _prof(name="direct_drive", **kw):
+    d = load_profile(name).to_dict()
+    d.update(kw)
+    return profile_from_dict(d)
+
+
+def _analytic_s(t, v0, vc, v1, a, L):
+    ta, td = (vc - v0) / a, (vc - v1) / a
+    tc = (L - (vc**2 - v0**2) / (2 * a) - (vc**2 - v1**2) / (2 * a)) / vc
+    t = np.asarray(t)
+    s_acc = v0 * t + 0.5 * a * t**2
+    da = v0 * ta + 0.5 * a * ta**2
+    s_cru = da + vc * (t - ta)
+    t1 = t - ta - tc
+    s_dec = da + vc * tc + vc * t1 - 0.5 * a * t1**2
+    return np.where(t < ta, s_acc, np.where(t1 > 0, s_dec, s_cru)), ta + tc + td
+
+
+def test_trapezoid_matches_analytic_distance_and_time():
+    prof = _prof(max_accel_mm_s2=1000.0)
+    tl, pr = plan_gcode("G90\nG1 X10 Y20 F600\nG4 P1\nG1 X110 Y20 F6000\n", prof)
+    mp = plan_moves(pr.moves, prof)
+    # move 2: 100 mm at 100 mm/s, a = 1000: 0.1 s up (5 mm), 0.9 s cruise, 0.1 s down
+    assert mp.duration_s[2] == pytest.approx(1.1, abs=1e-9)
+    assert (mp.v_start_mm_s[2], mp.v_end_mm_s[2]) == (0.0, 0.0)   # straight from standstill
+    on = (tl.t_s >= mp.t_start_s[2]) & (tl.y_mm == 20) & (tl.x_mm >= 10)
+    t = tl.t_s[on] - mp.t_start_s[2]
+    s_exp, T = _analytic_s(t, 0.0, 100.0, 0.0, 1000.0, 100.0)
+    assert np.max(np.abs(tl.x_mm[on] - 10 - s_exp)) < 1e-6
+    assert T == pytest.approx(1.1, abs=1e-12) and t[-1] == pytest.approx(1.1, abs=1e-9)
+    assert tl.x_mm[-1] == 110.0
+    v_exp = np.minimum.reduce([1000 * t, np.full_like(t, 100.0), 1000 * (1.1 - t)])
+    assert np.max(np.abs(tl.v_mm_s[on] - v_exp)) < 1e-6
+
+
+def test_triangle_profile_when_the_move_is_too_short_to_cruise():
+    prof = _prof(max_accel_mm_s2=1000.0)
+    tl, pr = plan_gcode("G1 X4 Y0 F6000\n", prof)
+    mp = plan_moves(pr.moves, prof)
+    vpeak = math.sqrt(1000.0 * 4.0)          # v^2 = a L for a symmetric triangle
+    assert mp.v_cruise_mm_s[0] == pytest.approx(vpeak, abs=1e-9)
+    assert mp.duration_s[0] == pytest.approx(2 * vpeak / 1000.0, abs=1e-9)
+    s_exp, _ = _analytic_s(tl.t_s, 0.0, vpeak, 0.0, 1000.0, 4.0)
+    assert np.max(np.abs(tl.x_mm - s_exp)) < 1e-6
+
+
+def test_collinear_segments_plan_like_one_move():
+    prof = _prof(max_accel_mm_s2=1000.0)
+    one = plan_moves(parse_gcode("G1 X100 F6000\n").moves, prof).total_time_s
+    many = "".join(f"G1 X{x} F6000\n" for x in range(1, 101))
+    assert plan_moves(parse_gcode(many).moves, prof).total_time_s == pytest.approx(one, abs=1e-9)
+
+
+def test_klipper_square_corner_velocity_published_formula():
+    # Klipper docs: square_corner_velocity is the speed through a 90 degree corner.
+    assert junction_speed_klipper_mm_s(90.0, 5.0, 3000.0) == pytest.approx(5.0, rel=1e-12)
+    assert junction_speed_klipper_mm_s(90.0, 5.0, 500.0) == pytest.approx(5.0, rel=1e-12)
+    assert junction_speed_klipper_mm_s(180.0, 5.0, 3000.0) == 0.0
+    # 45 degree turn: v^2 = a jd s/(1-s), s = sin(67.5 deg)
+    s = math.sin(math.radians(67.5))
+    jd = 25 * (math.sqrt(2) - 1) / 3000
+    assert junction_speed_klipper_mm_s(45.0, 5.0, 3000.0) == pytest.approx(math.sqrt(3000 * jd * s / (1 - s)))
+    prof = _prof(square_corner_velocity_mm_s=5.0, max_accel_mm_s2=3000.0)
+    mp = plan_moves(parse_gcode("G1 X50 Y0 F6000\nG1 X50 Y50\n").moves, prof)
+    assert mp.v_end_mm_s[0] == pytest.approx(5.0, abs=1e-9)
+    assert mp.v_start_mm_s[1] == pytest.approx(5.0, abs=1e-9)
+
+
+def test_marlin_junction_deviation_and_rrf_jerk_corners():
+    marlin = _prof("adventurer3", junction_deviation_mm=0.05, max_accel_mm_s2=500.0)
+    mp = plan_moves(parse_gcode("G1 X50 Y0 F6000\nG1 X50 Y50\n").moves, marlin)
+    s = math.sin(math.radians(45))
+    assert mp.v_end_mm_s[0] == pytest.approx(math.sqrt(500 * 0.05 * s / (1 - s)), abs=1e-9)
+    rrf = _prof("long_bowden", max_jerk_mm_s=10.0)
+    mp = plan_moves(parse_gcode("G1 X50 Y0 F6000\nG1 X50 Y50\n").moves, rrf)
+    assert mp.v_end_mm_s[0] == pytest.approx(10.0 / math.sqrt(2), abs=1e-9)
+    # a reversal always stops
+    mp = plan_moves(parse_gcode("G1 X50 Y0 F6000\nG1 X0 Y0\n").moves, marlin)
+    assert mp.v_end_mm_s[0] == 0.0
+
+
+def test_extruder_only_move_uses_extruder_limits_and_dwell_time():
+    prof = _prof("adventurer3", max_e_velocity_mm_s=40.0, max_e_accel_mm_s2=1000.0)
+    mp = plan_moves(parse_gcode("M83\nG1 E-2 F6000\nG4 P500\nG4 S1.5\n").moves, prof)
+    # 2 mm at <= 40 mm/s, a = 1000: 0.04 s up (0.8 mm), 0.4 mm cruise (0.01 s), 0.04 s down
+    assert mp.duration_s[0] == pytest.approx(0.09, abs=1e-9)
+    assert list(mp.duration_s[1:]) == pytest.approx([0.5, 1.5])
+    assert mp.total_time_s == pytest.approx(2.09)
+
+
+def test_marlin_caps_xy_speed_by_extruder_speed():
+    prof = _prof("ender3", max_e_velocity_mm_s=1.0)
+    mp = plan_moves(parse_gcode("M83\nG1 X100 E10 F6000\n").moves, prof)
+    assert mp.v_cruise_mm_s[0] == pytest.approx(10.0)     # E at 1 mm/s -> head 10 mm/s
+
+
+def test_timeline_sampling_and_commanded_volume_is_conserved():
+    prof = load_profile("direct_drive")
+    text = "M83\nG1 Z0.2 F600\nG1 X10 Y10 F9000\n" + "".join(
+        f"G1 X{10 + 30 * math.cos(a):.3f} Y{10 + 30 * math.sin(a):.3f} E{0.03 + 0.02 * (i % 3):.4f} F{1200 + 600 * (i % 4)}\n"
+        for i, a in enumerate(np.linspace(0, 6, 80))) + "G1 E-0.8 F2100\nG4 P200\nG1 X0 Y0 F9000\nG1 E0.8 F1800\n"
+    tl, pr = plan_gcode(text, prof)
+    assert np.all(np.diff(tl.t_s) <= 0.005 + 1e-12)
+    step = np.sqrt(np.diff(tl.x_mm) ** 2 + np.diff(tl.y_mm) ** 2 + np.diff(tl.z_mm) ** 2)
+    assert step.max() <= 0.25 + 1e-9
+    assert np.all(np.diff(tl.t_s) > 0)
+    # increments sum exactly to the commanded filament
+    assert tl.e_mm[-1] - tl.e_mm[0] == pytest.approx(pr.moves.de_mm.sum(), abs=1e-12)
+    # and the commanded flow integrates to the same volume (trapezoid rule on samples)
+    af = prof.filament_area_mm2
+    vol = np.trapezoid(tl.ve_mm_s * af, tl.t_s)
+    assert vol == pytest.approx(pr.moves.de_mm.sum() * af, rel=2e-3)
+    # every move boundary is a sample
+    mp = plan_moves(pr.moves, prof)
+    bounds = mp.t_start_s + mp.duration_s
+    assert np.all(np.min(np.abs(tl.t_s[None, :] - bounds[:, None]), axis=1) < 1e-9)
+
+
+def test_track_arc_length_and_labels():
+    text = """M83
+G1 X0 Y0 Z0.2 F3000
+;TRACK id=7 kind=test
+G1 X20 Y0 E1
+G1 X20 Y0 E-0.5
+G1 X20 Y10 E0
+;END_TRACK
+G1 X40 Y40
+"""
+    tl = plan(parse_gcode(text), load_profile("direct_drive"))
+    on = tl.track == 7
+    assert tl.s_mm[on][0] == 0.0 and tl.s_mm[on][-1] == pytest.approx(30.0)
+    assert np.all(np.diff(tl.s_mm[on]) >= 0)
+    assert np.all(np.isnan(tl.s_mm[~on]))
+    # the retraction happens at s = 20 while the head is still
+    retr = on & (tl.ve_mm_s < 0)
+    assert np.allclose(tl.s_mm[retr], 20.0) and np.allclose(tl.v_mm_s[retr], 0.0)
