@@ -1,0 +1,101 @@
+"""G-code -> manifest: labelled tracks from our writer, the realdata spiral test, the CLI."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib.cli import main
+from fit.geometry import bead_area_mm2
+from patterns.gcode_writer import GcodeWriter
+from patterns.manifest import Manifest, sample_points
+from patterns.plan import manifest_from_gcode
+
+REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+SPIRAL = REALDATA / "SpStartStopTest2_Te210Tp50Fe10Fc10Kf04Kb10Re15R.g"
+
+
+def _labelled_program():
+    w = GcodeWriter("direct_drive", layer_height_mm=0.25)
+    w.header("plan test", {})
+    w.set_z(0.25)
+    w.travel(20, 20)
+    w.begin_track(0, "prime")
+    w.extrude_line(120, 20, 0.6, 30)
+    w.end_track()
+    w.travel(20, 40)
+    w.begin_track(1, "test")
+    w.extrude_line(70, 40, 0.45, 50)
+    w.extrude_line(120, 40, 0.9, 50)
+    w.move_with_e(140, 40, 0.0, 50)
+    w.end_track()
+    w.footer()
+    return w.text()
+
+
+def test_labelled_gcode_gives_commanded_widths_and_flows():
+    man = manifest_from_gcode(_labelled_program(), "direct_drive")
+    assert [(t.id, t.kind) for t in man.tracks] == [(0, "prime"), (1, "test")]
+    tr = man.track(1)
+    assert tr.length_mm == pytest.approx(120.0)
+    # widths step (repeated vertex at x = 70), coasting part has width 0
+    assert np.allclose(tr.interp("width_mm", [10, 40, 60, 90, 110]), [0.45, 0.45, 0.9, 0.9, 0.0], atol=2e-4)
+    assert np.allclose(tr.height_mm, 0.25)
+    q = tr.interp("flow_mm3_s", [25.0, 75.0])
+    assert np.allclose(q, [bead_area_mm2(0.45, 0.25) * 50, bead_area_mm2(0.9, 0.25) * 50], rtol=1e-3)
+    # stations get print times from the timeline, increasing along the track
+    smp = sample_points(man)
+    assert len(smp) == int(120 / 0.25) + 1 and np.all(np.isfinite(smp.t_s))
+    assert np.all(np.diff(smp.t_s) > 0)
+
+
+@pytest.mark.skipif(not SPIRAL.is_file(), reason="../shared/realdata not present")
+def test_realdata_spiral_startstop_layout():
+    """SpStartStopTest2: four test groups (w = 0.3, 0.4, 0.8, 1.6 mm at h = 0.3 mm, ve = 1 mm/s
+    of filament for 3 s each), one spiral line per Re = 2.0, 2.4, ... 4.0 mm, so six lines per
+    group in this G-code ("Test Line ... Re=" comments of the verbose file)."""
+    man = manifest_from_gcode(SPIRAL.read_text(), "adventurer3")
+    assert man.fiducials == []
+    groups = {0.3: [], 0.4: [], 0.8: [], 1.6: []}   # the z = 0.2 prime line is not a test line
+    for tr in man.test_tracks():
+        # the author's bead model is a w x h rectangle: A / h is his nominal width
+        w_rect = np.median(bead_area_mm2(tr.width_mm, tr.height_mm) / tr.height_mm)
+        for w in groups:
+            if abs(w_rect - w) < 0.02 * w and tr.length_mm > 12 and abs(tr.z_mm - 0.3) < 1e-6:
+                groups[w].append(tr)
+    assert {w: len(v) for w, v in groups.items()} == {0.3: 6, 0.4: 6, 0.8: 6, 1.6: 6}
+    af = np.pi * 1.75 ** 2 / 4
+    tl = man.timeline
+    for w, trs in groups.items():
+        for tr in trs:
+            assert tr.height_mm[0] == pytest.approx(0.3) and tr.z_mm == pytest.approx(0.3)
+            # 3 mm of filament per line: length * w * h = 3 * Af
+            assert tr.length_mm * w * 0.3 == pytest.approx(3.0 * af, rel=0.01)
+            assert np.median(tr.flow_mm3_s) == pytest.approx(1.0 * af, rel=0.01)
+            on = tl.track == tr.id
+            assert tl.t_s[on][-1] - tl.t_s[on][0] == pytest.approx(3.0, rel=0.03)
+        # the six lines of a group are concentric spirals starting 2 mm apart in radius
+        r0 = sorted(np.hypot(*tr.points_mm[0]) for tr in trs)
+        assert np.allclose(np.diff(r0), 2.0, atol=0.15)
+    # groups printed in order of width
+    t_first = [min(tl.t_s[tl.track == tr.id][0] for tr in groups[w]) for w in (0.3, 0.4, 0.8, 1.6)]
+    assert t_first == sorted(t_first)
+
+
+@pytest.mark.skipif(not SPIRAL.is_file(), reason="../shared/realdata not present")
+def test_calib_plan_cli_writes_manifest_and_timeline(tmp_path, capsys):
+    out = tmp_path / "sp.manifest.json"
+    assert main(["plan", str(SPIRAL), "--printer", "adventurer3", "-o", str(out)]) == 0
+    man = Manifest.load(out)
+    assert (tmp_path / "sp.timeline.npz").is_file()
+    assert len(man.tracks) > 100 and man.printer["name"] == "adventurer3"
+    assert man.timeline.e_mm[-1] == pytest.approx(268.8143, abs=1e-6)
+
+
+def test_calib_plan_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
+    g = tmp_path / "x.gcode"
+    g.write_text("G1 X10 Y10 E1\n")
+    assert main(["plan", str(g), "--printer", "no_such_printer"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("calib plan: error: unknown printer 'no_such_printer'") and "\n" not in err
+    assert main(["plan", str(tmp_path / "missing.gcode"), "--printer", "adventurer3"]) == 2
+    assert "does not exist" in capsys.readouterr().err
