@@ -1,0 +1,116 @@
+"""`calib pattern NAME --printer P -o OUT.gcode`: write a test pattern and its manifest."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from calib.errors import UserError
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        vals = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not vals:
+        raise argparse.ArgumentTypeError("expected at least one number")
+    return vals
+
+
+def _ints(text: str) -> list[int]:
+    return [int(v) for v in _floats(text)]
+
+
+_COMMON = dict(help="printer profile: a .toml path or a shipped name (adventurer3, long_bowden, "
+                    "direct_drive, ender3)")
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "pattern", help="write a calibration test pattern (G-code + manifest)",
+        description="Write calibration G-code and, next to it, OUT.manifest.json and "
+                    "OUT.timeline.npz (tracks, fiducials, labels, planned timeline) for the "
+                    "measure and fit steps. Every pattern is one layer with four ArUco "
+                    "fiducials, a 1 mm ruler, labels and a prime line.")
+    sub = p.add_subparsers(dest="pattern", metavar="PATTERN", required=True)
+
+    def common(sp):
+        sp.add_argument("--printer", required=True, **_COMMON)
+        sp.add_argument("-o", "--output", required=True, help="G-code path to write (OUT.gcode)")
+
+    sp = sub.add_parser("spiral-step", help="Archimedean spirals, constant speed, stepped width (seed 004)",
+                        description="Spirals at constant head speed whose commanded width steps between "
+                                    "levels every --step-s seconds, not synchronised with the angle "
+                                    "(Duet3D, seed 004). One spiral per speed x step duration.")
+    common(sp)
+    sp.add_argument("--speeds", type=_floats, default=[15.0, 30.0], help="head speeds, mm/s (default 15,30)")
+    sp.add_argument("--step-s", type=_floats, default=[6.0], help="step durations, s (default 6)")
+    sp.add_argument("--steps", type=int, default=8, help="width levels per spiral (default 8)")
+    sp.add_argument("--widths", type=_floats, default=[0.35, 0.8], help="width levels, mm (default 0.35,0.8)")
+    sp.add_argument("--layer-height", type=float, default=0.2, help="layer height, mm (default 0.2)")
+
+    sp = sub.add_parser("stop-mid-path", help="extrusion stops mid-line, head coasts (seed 000)",
+                        description="Straight lines whose extrusion stops mid-path while the head keeps "
+                                    "moving: exponential feed ramp v0 exp(-t/tau), constant feed, and the "
+                                    "KISSlicer wizard variant (stop, wiper, wait 3 s, retract).")
+    common(sp)
+    sp.add_argument("--speeds", type=_floats, default=[20.0, 40.0], help="head speeds v0, mm/s (default 20,40)")
+    sp.add_argument("--tau", type=_floats, default=None,
+                    help="tau guesses for the feed ramp, s (default: seed-000 estimate x 0.5,1,2)")
+    sp.add_argument("--variants", default="exp,const,wizard", help="any of exp,const,wizard (default all)")
+    sp.add_argument("--steady-s", type=float, default=None, help="printing time before the stop, s")
+
+    sp = sub.add_parser("retract", help="steady lines then a moving retraction (seed 001 RetractTest)",
+                        description="Seed-001 RetractTest designs: prime/drain/restore, a steady line, then "
+                                    "a 4 mm retraction while moving 40 mm at 10 mm/s; the smear length "
+                                    "measures the pressure.")
+    common(sp)
+    sp.add_argument("--designs", type=_ints, default=[1, 2, 3, 4], help="seed-001 designs 1..4 (default all)")
+    sp.add_argument("--steps", type=int, default=6, help="lines per design (default 6)")
+    sp.add_argument("--draw-mm", type=float, default=40.0, help="steady line length, mm (default 40)")
+    sp.add_argument("--restore-mm", type=float, default=1.0, help="restore Re before the line, mm (default 1)")
+
+    sp = sub.add_parser("start-stop", help="restore/retract sweep on concentric arcs (seed 001 StartStopTest)",
+                        description="Seed-001 spiral StartStopTest: prime, drain, restore Re, draw, retract, "
+                                    "drool check, restore, cooldown; sweeps Re within a ring group and w "
+                                    "between groups.")
+    common(sp)
+    sp.add_argument("--re-mm", type=_floats, default=[2.0, 2.5, 3.0, 3.5, 4.0], help="restore distances, mm")
+    sp.add_argument("--widths", type=_floats, default=[0.3, 0.4, 0.8, 1.6], help="bead widths, mm")
+    sp.add_argument("--ve", type=float, default=1.0, help="extruder velocity while drawing, mm/s (default 1)")
+    sp.add_argument("--layer-height", type=float, default=0.3, help="layer height, mm (default 0.3)")
+    sp.add_argument("--draw-s", type=float, default=3.0, help="drawing time per test, s (default 3)")
+    return p
+
+
+def _kwargs(args) -> dict:
+    if args.pattern == "spiral-step":
+        return dict(speeds_mm_s=args.speeds, step_s=args.step_s, n_steps=args.steps, widths_mm=args.widths,
+                    layer_height_mm=args.layer_height)
+    if args.pattern == "stop-mid-path":
+        return dict(speeds_mm_s=args.speeds, tau_s=args.tau, steady_s=args.steady_s,
+                    variants=[v.strip() for v in args.variants.split(",") if v.strip()])
+    if args.pattern == "retract":
+        return dict(designs=args.designs, n_steps=args.steps, draw_mm=args.draw_mm, restore_mm=args.restore_mm)
+    return dict(re_mm=args.re_mm, widths_mm=args.widths, ve_mm_s=args.ve, height_mm=args.layer_height,
+                draw_s=args.draw_s)
+
+
+def run(args) -> int:
+    from calib.fileio import atomic_write_text
+    from patterns.builder import PATTERNS
+    from patterns.manifest import manifest_path_for
+    from patterns.profile import load_profile
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".gcode", ".g", ".gco"):
+        raise UserError(f"output {out} should end in .gcode")
+    profile = load_profile(args.printer)
+    gcode, manifest = PATTERNS[args.pattern](profile, **_kwargs(args))
+    manifest.gcode = out.name
+    atomic_write_text(out, gcode)
+    mpath = manifest.save(manifest_path_for(out))
+    n = len(manifest.test_tracks())
+    dur = manifest.timeline.duration_s / 60 if manifest.timeline is not None else float("nan")
+    print(f"wrote {out} and {mpath}: {n} test tracks, {len(manifest.fiducials)} fiducials, ~{dur:.1f} min")
+    return 0
