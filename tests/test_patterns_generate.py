@@ -1,0 +1,141 @@
+"""The four test patterns: bed bounds, fiducials that decode, no overlaps, round trip
+through the G-code parser/planner, spiral steps off the angle, exponential feed ramp."""
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.errors import UserError
+from patterns import font, layout
+from patterns.builder import PATTERNS
+from patterns.plan import manifest_from_gcode
+from patterns.profile import load_profile
+from patterns.stop_mid_path import exp_feed_ramp
+
+PROFILES = ("adventurer3", "long_bowden", "direct_drive")
+NAMES = ("spiral-step", "stop-mid-path", "retract", "start-stop")
+
+
+@functools.lru_cache(maxsize=None)
+def generated(name, printer):
+    return PATTERNS[name](load_profile(printer))
+
+
+def _render_fiducials(manifest, px_mm=8.0):
+    """Rasterise the fiducial tracks (beads at their commanded width) into a white-on-black image."""
+    tr = [t for t in manifest.tracks if t.kind == "fiducial"]
+    allp = np.concatenate([t.points_mm for t in tr])
+    lo, hi = allp.min(0) - 10, allp.max(0) + 10
+    w, h = np.ceil((hi - lo) * px_mm).astype(int)
+    img = np.zeros((h, w), np.uint8)
+    to_px = lambda p: ((p[:, 0] - lo[0]) * px_mm, (hi[1] - p[:, 1]) * px_mm)  # noqa: E731  v points down
+    for t in tr:
+        u, v = to_px(t.points_mm)
+        for i in range(len(u) - 1):
+            wi = max(t.width_mm[i], t.width_mm[i + 1])
+            if wi > 0:
+                cv2.line(img, (int(round(u[i] * 16)), int(round(v[i] * 16))),
+                         (int(round(u[i + 1] * 16)), int(round(v[i + 1] * 16))), 255,
+                         max(1, int(round(wi * px_mm))), cv2.LINE_AA, 4)
+    return img, lo, hi
+
+
+def _detect(img, inverted):
+    params = cv2.aruco.DetectorParameters()
+    params.detectInvertedMarker = inverted
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), params)
+    corners, ids, _ = det.detectMarkers(img)
+    return corners, (ids.ravel().tolist() if ids is not None else [])
+
+
+@pytest.mark.parametrize("printer", PROFILES)
+@pytest.mark.parametrize("name", NAMES)
+def test_pattern_in_bed_no_overlap_and_fiducials_decode(name, printer):
+    gcode, m = generated(name, printer)
+    prof = load_profile(printer)
+    tl = m.timeline
+    assert prof.in_bed(tl.x_mm, tl.y_mm).all(), "a planned move leaves the bed"
+    assert all(prof.in_bed(t.points_mm[:, 0], t.points_mm[:, 1]).all() for t in m.tracks)
+    kinds = {t.kind for t in m.tracks}
+    assert {"test", "fiducial", "ruler", "label", "prime"} <= kinds
+    assert m.pattern["name"] == name and m.pattern["params"]
+    assert all(t.params for t in m.test_tracks())
+    assert layout.overlapping_tracks(m.tracks) == []
+    assert len(m.fiducials) >= 4
+    img, lo, hi = _render_fiducials(m)
+    for inverted, image in ((False, img), (True, 255 - img)):
+        corners, ids = _detect(image, inverted)
+        assert sorted(ids) == sorted(f.id for f in m.fiducials)
+        for c, i in zip(corners, ids):
+            c = c.reshape(4, 2)
+            mm = np.column_stack([lo[0] + (c[:, 0] + 0.5) / 8.0, hi[1] - (c[:, 1] + 0.5) / 8.0])
+            ref = np.asarray(next(f for f in m.fiducials if f.id == i).corners_mm)
+            assert np.abs(mm - ref).max() < 0.35, (i, mm, ref)   # ~ 3 px at 8 px/mm
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_pattern_parses_back_to_its_manifest(name):
+    gcode, m = generated(name, "adventurer3")
+    again = manifest_from_gcode(gcode, "adventurer3")
+    assert [t.id for t in again.tracks] == [t.id for t in m.tracks]
+    assert [t.kind for t in again.tracks] == [t.kind for t in m.tracks]
+    for a, b in zip(again.tracks, m.tracks):
+        assert a.length_mm == pytest.approx(b.length_mm, abs=1e-6)
+    np.testing.assert_allclose(again.timeline.t_s, m.timeline.t_s)
+    np.testing.assert_allclose(again.timeline.e_mm, m.timeline.e_mm)
+
+
+def test_spiral_steps_not_synchronised_with_angle():
+    _, m = generated("spiral-step", "adventurer3")
+    for tr in m.test_tracks():
+        p = tr.params
+        pos, _ = tr.at(np.asarray(p["step_boundaries_mm"]))
+        ang = np.arctan2(pos[:, 1] - p["center_mm"][1], pos[:, 0] - p["center_mm"][0])
+        assert layout.steps_angles_spread(ang) < 0.35          # far from all at one angle (R = 1)
+        d = np.abs(np.angle(np.exp(1j * np.diff(ang))))
+        assert np.median(d) > np.deg2rad(10)
+        # The width really steps at those boundaries (commanded widths at both levels).
+        w = tr.interp("width_mm", np.asarray(p["step_boundaries_mm"]) + 1.0)
+        assert set(np.round(w, 3)) == set(np.round(p["widths_mm"], 3))
+
+
+def test_stop_mid_path_feed_follows_exponential():
+    v0, tau = 40.0, 0.3
+    t, s, v = exp_feed_ramp(v0, tau)
+    np.testing.assert_allclose(s, v0 * tau * (1 - np.exp(-t / tau)))
+    _, m = generated("stop-mid-path", "adventurer3")
+    tr = next(t for t in m.test_tracks() if t.params["variant"] == "exp"
+              and t.params["speed_mm_s"] == 40.0 and t.params["tau_guess_s"] > 0.2)
+    tau = tr.params["tau_guess_s"]
+    tl = m.timeline
+    on = (tl.track == tr.id) & (tl.s_mm >= tr.params["stop_s_mm"])
+    t_stop = tl.t_s[on][0]
+    t_rel, s_rel = tl.t_s[on] - t_stop, tl.s_mm[on] - tr.params["stop_s_mm"]
+    assert np.all(tl.ve_mm_s[on][1:] == 0) or np.abs(tl.ve_mm_s[on][2:]).max() < 1e-9
+    # Segment speeds are the ramp's means: position matches the exponential within a few %
+    # of the coast length once the planner's finite deceleration has caught up.
+    model = 40.0 * tau * (1 - np.exp(-t_rel / tau))
+    late = t_rel > 0.5 * tau
+    assert np.abs(s_rel[late] - model[late]).max() < 0.05 * 40.0 * tau
+
+
+def test_overflow_is_a_user_error_naming_pattern_and_size():
+    with pytest.raises(UserError, match=r"spiral-step needs \d+ mm in y but the bed is 150 mm: reduce --speeds"):
+        PATTERNS["spiral-step"](load_profile("adventurer3"), speeds_mm_s=(20, 40, 60))
+
+
+def test_font_covers_labels_and_fiducial_bits():
+    for ch in "0123456789abcdefghijklmnopqrstuvwxyz.=-/:":
+        assert font.supported(ch)
+    assert font.text_width_mm("10", 6.0) == pytest.approx(4 + 5.5)
+    from patterns.fiducials import plan_fiducial, printed_bits
+    bits = printed_bits(7)
+    assert bits.shape == (8, 8) and bits[0].all() and bits[1, 1:7].sum() == 0
+    fp = plan_fiducial(7, (10.0, 20.0), 2.0, 0.5)
+    assert fp.fiducial.corners_mm[0] == [12.0, 34.0]          # TL = (x0, y0 + size)
+    # Raster lines exactly fill the white area: total printed area = white cells * cell^2.
+    area = sum(abs(s[1, 0] - s[0, 0]) + 0.5 for s in fp.strokes_mm) * 0.5
+    assert area == pytest.approx(bits.sum() * 4.0)
