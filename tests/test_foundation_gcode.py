@@ -200,3 +200,8 @@ def test_realdata_gcode_parses_with_flashforge_commands_counted():
         assert len(pr.moves) > 2500
         assert pr.unknown_commands.get("M132") == 2 and pr.unknown_commands.get("G161") == 1
         assert not any("outside the bed" in w for w in pr.warnings)
+
+
+def test_line_numbers_checksums_and_lowercase():
+    m = parse_gcode("N10 G1 X5 Y2 F600*35\nn11 g1 x7 y2 e0.5\n").moves
+    assert list(m.x_mm) == [5.0, 7.0] and m.de_mm[1] == pytest.approx(0.5)

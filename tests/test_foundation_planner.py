@@ -145,3 +145,12 @@ G1 X40 Y40
     # the retraction happens at s = 20 while the head is still
     retr = on & (tl.ve_mm_s < 0)
     assert np.allclose(tl.s_mm[retr], 20.0) and np.allclose(tl.v_mm_s[retr], 0.0)
+
+
+def test_pa_events_get_program_times():
+    prof = _prof(max_accel_mm_s2=1000.0)
+    text = "M83\nG1 X100 F6000\nSET_PRESSURE_ADVANCE ADVANCE=0.04 SMOOTH_TIME=0.02\nG4 P250\nM900 K0.1\n"
+    tl, pr = plan_gcode(text, prof)
+    assert [(e.k_s, e.smooth_time_s) for e in pr.pa_events] == [(0.04, 0.02), (0.1, None)]
+    assert [e.t_s for e in pr.pa_events] == pytest.approx([1.1, 1.35])
+    assert tl.t_s[-1] == pytest.approx(1.35)
