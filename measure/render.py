@@ -1,0 +1,554 @@
+"""Synthetic flatbed scans and phone photos of a printed pattern, with exact ground truth.
+
+What "true width" means
+-----------------------
+A bead of width w seen from above is rendered as the *Gaussian-softened footprint* of a
+band of width w about the track's centre line: its plastic coverage at distance d (mm)
+from the centre line is
+
+    alpha(d) = Phi((w/2 - d) / s_e) - Phi((-w/2 - d) / s_e)              (1)
+
+with Phi the standard normal CDF and s_e (mm) the edge softness of the rounded bead
+(default 0.15 h, h the layer height: the bead's rounded flank thins the plastic towards
+the edge). Each edge therefore passes through coverage 1/2 exactly at d = w/2: **the true
+width is the distance between the two 50 % coverage points**, and it is the ``w`` of the
+edge-pair erf model the measurement fits (shared/REFERENCE.md "Measuring width").
+Image intensity is linear in coverage, I = plate (1 - o alpha) + plastic o alpha (o the
+opacity), and every later blur (optics, pixel area) is symmetric, so the half-contrast
+crossings of a straight bead stay at +-w/2 for w >> s_e.
+
+Geometry is exact because nothing is resampled: every camera (sub)pixel is unprojected
+to bed mm through the true :class:`~measure.camera.Camera` and the coverage (1) is
+evaluated analytically there, against the distance to the track's polyline (union of
+stadium-shaped segments with linearly varying width). Test tracks take their width from
+the ``widths`` table (interpolated between samples along s); every other track (prime,
+fiducial, ruler, label) its commanded width. Separate tracks add coverage (clipped at 1)
+so touching raster lines of a fiducial print solid, as they do on a real plate.
+
+Everything that is not the pattern (plate texture, plate logos, scratches, cutting mat)
+is drawn on a bed-space raster and mapped into the camera with ``cv2.remap``; lighting,
+vignetting, defocus blur, shot + read noise and JPEG compression follow in image space.
+Images are uint8 BGR (OpenCV order).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numba import njit, prange
+from scipy.special import ndtr
+
+from measure.camera import Camera
+from measure.table import WidthTable
+from measure.truth_io import ScanTruth
+from patterns.manifest import Manifest, sample_points
+
+#: Edge softness s_e as a fraction of the layer height (see module docstring, eq. 1).
+EDGE_SOFTNESS_PER_HEIGHT = 0.15
+#: Coverage is evaluated out to this many s_e beyond the edge.
+_EDGE_REACH = 6.0
+
+
+@dataclass
+class Lighting:
+    """Uneven illumination, as factors on the exposure.
+
+    exposure        reflectance 1.0 -> this many DN (0-255) at the brightest spot
+    gradient        (gx, gy) fractional brightness change across the image width/height
+    vignetting      fractional fall-off at the image corners (quadratic in radius)
+    glare           amplitude (DN) of a soft additive hotspot (phone flash/window), 0 = none
+    """
+
+    exposure: float = 235.0
+    gradient: tuple[float, float] = (0.0, 0.0)
+    vignetting: float = 0.0
+    glare: float = 0.0
+
+    @classmethod
+    def for_camera(cls, kind: str, rng: np.random.Generator) -> "Lighting":
+        if kind == "phone":
+            return cls(exposure=225.0, gradient=tuple(rng.uniform(-0.15, 0.15, 2)), vignetting=0.30,
+                       glare=float(rng.uniform(6.0, 14.0)))
+        return cls(exposure=235.0, gradient=tuple(rng.uniform(-0.03, 0.03, 2)), vignetting=0.0, glare=0.0)
+
+
+@dataclass
+class Rendered:
+    """A synthetic picture and its ground truth.
+
+    image     (H, W, 3) uint8 BGR, what the file holds (after JPEG if any)
+    truth     :class:`measure.truth_io.ScanTruth` (camera, true widths, settings)
+    encoded   the JPEG bytes when ``jpeg_quality`` was set (write these, do not re-encode)
+    """
+
+    image: np.ndarray
+    truth: ScanTruth
+    encoded: bytes | None = None
+
+    @property
+    def camera(self) -> Camera:
+        return self.truth.camera
+
+    @property
+    def table(self) -> WidthTable:
+        return self.truth.widths
+
+
+# =====================================================================================
+# numba kernels
+# =====================================================================================
+@njit(parallel=True, cache=True)
+def unproject_grid(Hinv, cx, cy, f, k1, k2, width, height, ss, X, Y):  # pragma: no cover - numba
+    """Bed mm (X, Y float32 (height*ss, width*ss)) of every sub-pixel centre of the image.
+
+    Sub-pixel (i, j) of a grid ``ss`` times finer sits at u = (i + 0.5)/ss - 0.5 (OpenCV
+    pixel centres at integers). Undistortion by Newton along the radius (camera.undistort_px).
+    """
+    distorted = (k1 != 0.0) or (k2 != 0.0)
+    for j in prange(height * ss):
+        v = (j + 0.5) / ss - 0.5
+        for i in range(width * ss):
+            u = (i + 0.5) / ss - 0.5
+            if distorted:
+                dx = (u - cx) / f
+                dy = (v - cy) / f
+                rd = math.sqrt(dx * dx + dy * dy)
+                r = rd
+                for _ in range(6):
+                    r2 = r * r
+                    r = r - (r * (1.0 + k1 * r2 + k2 * r2 * r2) - rd) / (1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2)
+                s = r / rd if rd > 0 else 1.0
+                uu = cx + f * dx * s
+                vv = cy + f * dy * s
+            else:
+                uu = u
+                vv = v
+            q0 = Hinv[0, 0] * uu + Hinv[0, 1] * vv + Hinv[0, 2]
+            q1 = Hinv[1, 0] * uu + Hinv[1, 1] * vv + Hinv[1, 2]
+            q2 = Hinv[2, 0] * uu + Hinv[2, 1] * vv + Hinv[2, 2]
+            X[j, i] = q0 / q2
+            Y[j, i] = q1 / q2
+
+
+@njit(parallel=True, cache=True)
+def _track_coverage(X, Y, seg, segw, bbox, starts, track_sigma, alpha):  # pragma: no cover - numba
+    """Add the coverage (eq. 1) of every track to ``alpha`` (clipped at 1).
+
+    seg (N, 4) segment end points (ax, ay, bx, by) mm; segw (N, 2) widths at the ends (mm);
+    bbox (N, 4) sub-pixel window (i0, i1, j0, j1) of each segment; starts (T+1) segment
+    index ranges per track; track_sigma (T,) edge softness s_e (mm).
+    Within one track the nearest segment (largest w/2 - d) wins: a bead does not add to
+    itself where consecutive segments overlap.
+    """
+    for t in range(len(starts) - 1):
+        k0, k1 = starts[t], starts[t + 1]
+        if k1 <= k0:
+            continue
+        i0 = bbox[k0:k1, 0].min()
+        i1 = bbox[k0:k1, 1].max()
+        j0 = bbox[k0:k1, 2].min()
+        j1 = bbox[k0:k1, 3].max()
+        if i1 <= i0 or j1 <= j0:
+            continue
+        E = np.full((j1 - j0, i1 - i0), -1e9, dtype=np.float32)
+        Wd = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
+        for k in range(k0, k1):
+            ax, ay, bx, by = seg[k, 0], seg[k, 1], seg[k, 2], seg[k, 3]
+            w0, w1 = segw[k, 0], segw[k, 1]
+            dx = bx - ax
+            dy = by - ay
+            L2 = dx * dx + dy * dy
+            for j in prange(bbox[k, 2], bbox[k, 3]):
+                for i in range(bbox[k, 0], bbox[k, 1]):
+                    px = X[j, i] - ax
+                    py = Y[j, i] - ay
+                    tp = (px * dx + py * dy) / L2 if L2 > 0 else 0.0
+                    tp = min(1.0, max(0.0, tp))
+                    ex = px - tp * dx
+                    ey = py - tp * dy
+                    w = w0 + tp * (w1 - w0)
+                    e = 0.5 * w - math.sqrt(ex * ex + ey * ey)
+                    if e > E[j - j0, i - i0]:
+                        E[j - j0, i - i0] = e
+                        Wd[j - j0, i - i0] = w
+        sg = track_sigma[t] * math.sqrt(2.0)
+        reach = -_EDGE_REACH * track_sigma[t]
+        for j in prange(j0, j1):
+            for i in range(i0, i1):
+                e = E[j - j0, i - i0]
+                if e > reach:
+                    w = Wd[j - j0, i - i0]
+                    # Phi(e/s) - Phi((e - w)/s): eq. (1) with d = w/2 - e
+                    a = 0.5 * (math.erf(e / sg) - math.erf((e - w) / sg))
+                    alpha[j, i] = min(1.0, alpha[j, i] + a)
+
+
+# =====================================================================================
+# geometry preparation
+# =====================================================================================
+def _track_nodes(track, widths: WidthTable | None):
+    """Polyline nodes (M, 2) mm and widths (M,) mm to draw for one track.
+
+    Test tracks in ``widths``: nodes at every vertex and every sample; width interpolated
+    linearly in s between the samples. Other tracks: vertices, densified to <= 1 mm.
+    """
+    cl = track.cumlen_mm
+    if track.length_mm <= 0:
+        return track.points_mm[:1], track.width_mm[:1]
+    sel = None
+    if widths is not None and track.kind == "test":
+        sel = widths.track == track.id
+        if not sel.any():
+            sel = None
+    dense = np.linspace(0.0, cl[-1], int(np.ceil(cl[-1] / 1.0)) + 1)
+    if sel is not None:
+        s_tab = widths.s_mm[sel]
+        order = np.argsort(s_tab)
+        s_tab, w_tab = s_tab[order], widths.width_mm[sel][order]
+        s = np.unique(np.concatenate([cl, s_tab, dense]))
+        w = np.interp(s, s_tab, w_tab)
+    else:
+        s = np.unique(np.concatenate([cl, dense]))
+        w = track.interp("width_mm", s)
+    pos, _ = track.at(s)
+    # vertices: take the exact vertex (at() at a vertex returns the next segment's start)
+    return pos, np.maximum(np.nan_to_num(w), 0.0)
+
+
+def _segments(manifest: Manifest, widths: WidthTable | None, camera: Camera, ss: int,
+              edge_mm: float | None):
+    seg, segw, sig, starts = [], [], [], [0]
+    for tr in manifest.tracks:
+        pts, w = _track_nodes(tr, widths)
+        if len(pts) < 2:
+            continue
+        seg.append(np.hstack([pts[:-1], pts[1:]]))
+        segw.append(np.column_stack([w[:-1], w[1:]]))
+        starts.append(starts[-1] + len(pts) - 1)
+        h = float(np.nanmean(tr.height_mm)) if len(tr.height_mm) else 0.2
+        sig.append(edge_mm if edge_mm is not None else EDGE_SOFTNESS_PER_HEIGHT * max(h, 0.05))
+    if not seg:
+        return None
+    seg = np.vstack(seg)
+    segw = np.vstack(segw)
+    sig = np.asarray(sig, dtype=float)
+    track_of_seg = np.repeat(np.arange(len(sig)), np.diff(starts))
+    r = segw.max(axis=1) / 2 + _EDGE_REACH * sig[track_of_seg] + 0.01
+    lo = np.minimum(seg[:, :2], seg[:, 2:]) - r[:, None]
+    hi = np.maximum(seg[:, :2], seg[:, 2:]) + r[:, None]
+    corners = np.stack([lo, np.column_stack([hi[:, 0], lo[:, 1]]), hi,
+                        np.column_stack([lo[:, 0], hi[:, 1]])], axis=1).reshape(-1, 2)
+    uv = camera.project(corners).reshape(-1, 4, 2)
+    W, H = camera.image_size
+    # sub-pixel index of u is (u + 0.5) ss - 0.5; 2 sub-pixels of margin for lens curvature
+    sub = (uv + 0.5) * ss - 0.5
+    i0 = np.clip(np.floor(sub[..., 0].min(axis=1)) - 2, 0, W * ss).astype(np.int64)
+    i1 = np.clip(np.ceil(sub[..., 0].max(axis=1)) + 3, 0, W * ss).astype(np.int64)
+    j0 = np.clip(np.floor(sub[..., 1].min(axis=1)) - 2, 0, H * ss).astype(np.int64)
+    j1 = np.clip(np.ceil(sub[..., 1].max(axis=1)) + 3, 0, H * ss).astype(np.int64)
+    bbox = np.column_stack([i0, np.maximum(i1, i0), j0, np.maximum(j1, j0)])
+    return seg, segw, bbox, np.asarray(starts, dtype=np.int64), sig
+
+
+def _aruco_bits(marker_id: int, dictionary: str) -> np.ndarray:
+    """(8, 8) printed bitmap (marker + 1-cell quiet frame), 1 = plastic, row 0 on top."""
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    bits = (cv2.aruco.generateImageMarker(d, int(marker_id), 6) > 127).astype(float)
+    return np.pad(bits, 1, constant_values=1.0)
+
+
+def _fiducial_cells(manifest: Manifest, X, Y, camera: Camera, ss: int, sigma_mm: float, alpha):
+    """Draw fiducials that no ``fiducial`` track prints, as solid cells.
+
+    The blurred indicator of a union of disjoint cells is the sum of separable terms
+    [Phi((a - a0)/s) - Phi((a - a1)/s)] [Phi((b - b0)/s) - Phi((b - b1)/s)] in marker
+    coordinates (a, b), so cells join without seams.
+    """
+    fid_pts = [tr.points_mm for tr in manifest.tracks if tr.kind == "fiducial"]
+    fid_pts = np.vstack(fid_pts) if fid_pts else np.zeros((0, 2))
+    W, H = camera.image_size
+    for fd in manifest.fiducials:
+        c = np.asarray(fd.corners_mm, dtype=float)          # TL, TR, BR, BL
+        size = float(fd.size_mm)
+        cell = size / 6.0
+        bl = c[3]
+        ea = (c[2] - c[3]) / np.linalg.norm(c[2] - c[3])
+        eb = (c[0] - c[3]) / np.linalg.norm(c[0] - c[3])
+        if len(fid_pts):
+            rel = fid_pts - bl
+            a, b = rel @ ea, rel @ eb
+            if np.any((a > -cell) & (a < size + cell) & (b > -cell) & (b < size + cell)):
+                continue   # printed as raster tracks: drawn with the tracks
+        m = cell + 5 * sigma_mm
+        quad = bl + np.array([[-m, -m], [size + m, -m], [size + m, size + m], [-m, size + m]]) @ np.vstack([ea, eb])
+        sub = (camera.project(quad) + 0.5) * ss - 0.5
+        i0, j0 = np.clip(np.floor(sub.min(axis=0)) - 2, 0, [W * ss, H * ss]).astype(int)
+        i1, j1 = np.clip(np.ceil(sub.max(axis=0)) + 3, 0, [W * ss, H * ss]).astype(int)
+        if i1 <= i0 or j1 <= j0:
+            continue
+        px = X[j0:j1, i0:i1].astype(float) - bl[0]
+        py = Y[j0:j1, i0:i1].astype(float) - bl[1]
+        a = px * ea[0] + py * ea[1]
+        b = px * eb[0] + py * eb[1]
+        bits = _aruco_bits(fd.id, fd.dictionary)
+        edges = (np.arange(9) - 1) * cell                     # cell boundaries, a and b
+        Fa = ndtr((a[None] - edges[:, None, None]) / sigma_mm)  # (9, h, w)
+        Fb = ndtr((b[None] - edges[:, None, None]) / sigma_mm)
+        fa = Fa[:-1] - Fa[1:]                                  # column c covers [edges[c], edges[c+1]]
+        fb = Fb[:-1] - Fb[1:]
+        # bitmap row r (0 = top) covers b in [edges[7 - r], edges[8 - r]]
+        cov = np.einsum("rc,rhw,chw->hw", bits[::-1], fb, fa)
+        alpha[j0:j1, i0:i1] = np.minimum(1.0, alpha[j0:j1, i0:i1] + cov.astype(np.float32))
+
+
+# =====================================================================================
+# background: plate, clutter, cutting mat (bed-space raster)
+# =====================================================================================
+_PLATE_WORDS = ("PEI", "TEXTURED", "SMOOTH", "235 x 235", "HOT", "CAUTION", "FRONT", "SPRING STEEL",
+                "DO NOT TOUCH", "v2.1", "MAX 110 C")
+
+
+def _pattern_rect(manifest: Manifest) -> np.ndarray:
+    pts = [tr.points_mm for tr in manifest.tracks]
+    pts += [np.asarray(f.corners_mm, dtype=float) for f in manifest.fiducials]
+    P = np.vstack(pts) if pts else np.zeros((1, 2))
+    return np.concatenate([P.min(axis=0), P.max(axis=0)])
+
+
+def _background(manifest: Manifest, camera: Camera, Xc, Yc, plate: str, rng, clutter: bool):
+    """Reflectance image (H, W, 3) float32 of everything behind the plastic."""
+    W, H = camera.image_size
+    pr = _pattern_rect(manifest)
+    excl = pr + np.array([-4.0, -4.0, 4.0, 4.0])           # keep clutter off the pattern
+    bed = manifest.printer.get("bed_mm") or manifest.printer.get("bed_size_mm")
+    if isinstance(bed, (list, tuple)) and len(bed) >= 2:
+        plate_rect = np.array([0.0, 0.0, float(bed[0]), float(bed[1])])
+        plate_rect = np.array([min(plate_rect[0], pr[0] - 10), min(plate_rect[1], pr[1] - 10),
+                               max(plate_rect[2], pr[2] + 10), max(plate_rect[3], pr[3] + 10)])
+    else:
+        m = rng.uniform(25.0, 45.0, 4)
+        plate_rect = pr + np.array([-m[0], -m[1], m[2], m[3]])
+    # bed-space extent seen by the camera
+    border = np.concatenate([
+        np.column_stack([np.linspace(0, W - 1, 41), np.zeros(41)]),
+        np.column_stack([np.linspace(0, W - 1, 41), np.full(41, H - 1.0)]),
+        np.column_stack([np.zeros(41), np.linspace(0, H - 1, 41)]),
+        np.column_stack([np.full(41, W - 1.0), np.linspace(0, H - 1, 41)])])
+    xy = camera.unproject(border)
+    lo = np.maximum(xy.min(axis=0) - 2, pr[:2] - 400)
+    hi = np.minimum(xy.max(axis=0) + 2, pr[2:] + 400)
+    ppmm = float(np.clip(np.max(camera.px_per_mm(xy)), 2.0, 10.0))
+    bw, bh = int(np.ceil((hi[0] - lo[0]) * ppmm)) + 1, int(np.ceil((hi[1] - lo[1]) * ppmm)) + 1
+
+    def to_px(x, y):   # bed mm -> raster (col, row); the raster has +y up
+        return (x - lo[0]) * ppmm, (hi[1] - y) * ppmm
+
+    def ipt(x, y):
+        c, r = to_px(x, y)
+        return int(round(c * 16)), int(round(r * 16))   # 4 fractional bits
+
+    # cutting mat: green with a 10 mm grid, bold lines every 50 mm
+    img = np.empty((bh, bw, 3), np.float32)
+    img[:] = (0.20, 0.36, 0.16) if clutter else (0.5, 0.5, 0.5)
+    if clutter:
+        for k in range(int(lo[0] // 10), int(hi[0] // 10) + 1):
+            cv2.line(img, ipt(k * 10, lo[1]), ipt(k * 10, hi[1]), (0.55, 0.75, 0.5),
+                     2 if k % 5 == 0 else 1, cv2.LINE_AA, 4)
+        for k in range(int(lo[1] // 10), int(hi[1] // 10) + 1):
+            cv2.line(img, ipt(lo[0], k * 10), ipt(hi[0], k * 10), (0.55, 0.75, 0.5),
+                     2 if k % 5 == 0 else 1, cv2.LINE_AA, 4)
+    # the plate, with rounded corners and its texture
+    mask = np.zeros((bh, bw), np.float32)
+    rad = 6.0
+    x0, y0, x1, y1 = plate_rect
+    rect_pts = np.array([ipt(x0 + rad, y0), ipt(x1 - rad, y0), ipt(x1, y0 + rad), ipt(x1, y1 - rad),
+                         ipt(x1 - rad, y1), ipt(x0 + rad, y1), ipt(x0, y1 - rad), ipt(x0, y0 + rad)])
+    cv2.fillPoly(mask, [rect_pts], 1.0, cv2.LINE_AA, 4)
+    if plate == "dark":
+        base = np.array([0.10, 0.10, 0.11], np.float32)
+        grain = cv2.GaussianBlur(rng.standard_normal((bh, bw)).astype(np.float32), (0, 0), 0.6) * 0.05
+        blot = cv2.GaussianBlur(rng.standard_normal((bh, bw)).astype(np.float32), (0, 0), 3 * ppmm) * 2.0
+        tex = base[None, None, :] * (1.0 + grain + 0.1 * blot)[..., None]
+        ink = (0.62, 0.62, 0.60)
+    else:
+        base = np.array([0.74, 0.76, 0.78], np.float32)
+        blot = cv2.GaussianBlur(rng.standard_normal((bh, bw)).astype(np.float32), (0, 0), 8 * ppmm) * 4.0
+        tex = base[None, None, :] * (1.0 + 0.02 * blot + 0.004 * rng.standard_normal((bh, bw)).astype(np.float32))[..., None]
+        ink = (0.40, 0.40, 0.42)
+    img = img * (1 - mask[..., None]) + tex * mask[..., None]
+    if clutter:
+        ink_mask = np.zeros((bh, bw), np.uint8)      # cv2.putText draws on 8-bit images only
+        _draw_clutter(ink_mask, plate_rect, excl, rng, ipt, ppmm)
+        m = (ink_mask.astype(np.float32) / 255.0)[..., None]
+        img = img * (1 - m) + np.asarray(ink, np.float32)[None, None, :] * m
+    maps = ((Xc - lo[0]) * ppmm).astype(np.float32), ((hi[1] - Yc) * ppmm).astype(np.float32)
+    return cv2.remap(img, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def _draw_clutter(mask, plate_rect, excl, rng, ipt, ppmm):
+    """Plate logos/text and stray marks, only where they cannot touch the pattern."""
+    x0, y0, x1, y1 = plate_rect
+    bands = [(x0 + 3, y0 + 3, excl[0], y1 - 3), (excl[2], y0 + 3, x1 - 3, y1 - 3),
+             (x0 + 3, y0 + 3, x1 - 3, excl[1]), (x0 + 3, excl[3], x1 - 3, y1 - 3)]
+    for bx0, by0, bx1, by1 in bands:
+        if bx1 - bx0 < 8 or by1 - by0 < 6:
+            continue
+        for _ in range(int(rng.integers(1, 4))):
+            word = str(rng.choice(_PLATE_WORDS))
+            height_mm = min(float(rng.uniform(3.0, 7.0)), (by1 - by0) * 0.6)
+            scale = height_mm * ppmm / 22.0                    # HERSHEY_SIMPLEX cap ~22 px
+            thick = max(1, int(round(height_mm * ppmm / 8)))
+            (tw, th), _ = cv2.getTextSize(word, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
+            tw_mm = tw / ppmm
+            if tw_mm > bx1 - bx0 - 1:
+                continue
+            x = rng.uniform(bx0, bx1 - tw_mm)
+            y = rng.uniform(by0, by1 - height_mm)
+            c, r = ipt(x, y)
+            cv2.putText(mask, word, (c // 16, r // 16), cv2.FONT_HERSHEY_SIMPLEX, scale, 255, thick, cv2.LINE_AA)
+        for _ in range(int(rng.integers(2, 6))):              # scratches and stray strings
+            p = rng.uniform([bx0, by0], [bx1, by1], (2, 2))
+            cv2.line(mask, ipt(*p[0]), ipt(*p[1]), int(rng.integers(60, 200)), 1, cv2.LINE_AA, 4)
+
+
+# =====================================================================================
+# the renderer
+# =====================================================================================
+def _plastic(plate: str, plastic: str, rng):
+    """(reflectance BGR, opacity) of the filament."""
+    if plate == "dark":
+        colors = [(0.86, 0.86, 0.86), (0.35, 0.80, 0.92), (0.30, 0.55, 0.92), (0.80, 0.82, 0.70)]
+    else:
+        colors = [(0.08, 0.08, 0.09), (0.45, 0.20, 0.10), (0.10, 0.10, 0.50), (0.12, 0.30, 0.12)]
+    col = np.asarray(colors[int(rng.integers(len(colors)))], np.float32)
+    return col, (1.0 if plastic == "opaque" else float(rng.uniform(0.5, 0.65)))
+
+
+def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, plate: str = "dark",
+           plastic: str = "opaque", seed: int = 0, lighting: Lighting | None = None,
+           noise: float = 1.0, blur_px: float | None = None, jpeg_quality: int | None = None,
+           clutter: bool = True, supersample: int = 2, edge_mm: float | None = None,
+           model: dict | None = None, progress: bool = False) -> Rendered:
+    """Render ``manifest`` as ``camera`` sees it; test tracks at ``widths`` (mm).
+
+    widths        true widths along the test tracks (e.g. ``print_virtual(...).table``);
+                  None renders the commanded widths
+    plate         "dark" (textured) or "light" (smooth)
+    plastic       "opaque" or "translucent" (opacity 0.5-0.65: lower contrast, plate shows)
+    lighting      :class:`Lighting`; default per camera kind (seeded)
+    noise         multiplier on the sensor noise (shot: full well 4000 e- at 255 DN;
+                  read 1.2 DN); 0 = noiseless
+    blur_px       Gaussian sigma (px) of the optics/defocus; default 0.7 flatbed, 1.2 phone
+    jpeg_quality  encode as JPEG at this quality (phone photos), None = lossless
+    clutter       plate logos, scratches and a cutting mat around the plate
+    supersample   sub-pixels per pixel side (pixel-area integration of the coverage)
+    edge_mm       edge softness s_e (mm) of eq. (1); default 0.15 x layer height
+    model         {"spec": ..., "values": {...}} recorded in the truth
+    """
+    if plate not in ("dark", "light"):
+        raise ValueError(f"plate must be 'dark' or 'light', not {plate!r}")
+    if plastic not in ("opaque", "translucent"):
+        raise ValueError(f"plastic must be 'opaque' or 'translucent', not {plastic!r}")
+    from tqdm import tqdm
+
+    rng = np.random.default_rng(seed)
+    lighting = lighting or Lighting.for_camera(camera.kind, rng)
+    if blur_px is None:
+        blur_px = 1.2 if camera.kind == "phone" else 0.7
+    W, H = camera.image_size
+    ss = int(supersample)
+    bar = tqdm(total=5, desc="render", unit="step", disable=not progress, leave=False)
+    Hinv = np.linalg.inv(camera.H)
+    cx, cy = camera.center_px
+    # 1. bed coordinates of every sub-pixel and every pixel
+    Xs = np.empty((H * ss, W * ss), np.float32)
+    Ys = np.empty_like(Xs)
+    unproject_grid(Hinv, cx, cy, camera.f_px, camera.k1, camera.k2, W, H, ss, Xs, Ys)
+    bar.update()
+    # 2. plastic coverage, exact (eq. 1), then pixel-area average
+    alpha_s = np.zeros((H * ss, W * ss), np.float32)
+    prep = _segments(manifest, widths, camera, ss, edge_mm)
+    if prep is not None:
+        seg, segw, bbox, starts, sig = prep
+        _track_coverage(Xs, Ys, seg, segw, bbox, starts, sig, alpha_s)
+    fid_sigma = edge_mm if edge_mm is not None else EDGE_SOFTNESS_PER_HEIGHT * 0.2
+    _fiducial_cells(manifest, Xs, Ys, camera, ss, fid_sigma, alpha_s)
+    del Xs, Ys
+    alpha = alpha_s.reshape(H, ss, W, ss).mean(axis=(1, 3)) if ss > 1 else alpha_s
+    del alpha_s
+    bar.update()
+    # 3. background seen through the camera
+    Xc = np.empty((H, W), np.float32)
+    Yc = np.empty_like(Xc)
+    unproject_grid(Hinv, cx, cy, camera.f_px, camera.k1, camera.k2, W, H, 1, Xc, Yc)
+    back = _background(manifest, camera, Xc, Yc, plate, rng, clutter)
+    del Xc, Yc
+    bar.update()
+    # 4. compose (linear in coverage), light, blur
+    col, opacity = _plastic(plate, plastic, rng)
+    a = (opacity * alpha)[..., None]
+    img = back * (1.0 - a) + col[None, None, :] * a
+    del back, a
+    img *= _light_field(W, H, lighting, rng)[..., None]
+    if lighting.glare > 0:
+        img += _glare(W, H, lighting.glare, rng)[..., None]
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    bar.update()
+    # 5. sensor noise: shot (Poisson ~ Gaussian, variance DN * 255 / full well) + read
+    if noise > 0:
+        var = np.maximum(img, 0.0) * (255.0 / 4000.0) + 1.2 ** 2
+        img += noise * np.sqrt(var) * rng.standard_normal(img.shape, dtype=np.float32)
+    image = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    del img
+    encoded = None
+    if jpeg_quality is not None:
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        encoded = buf.tobytes()
+        image = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    bar.update()
+    bar.close()
+    table = true_widths(manifest, widths)
+    settings = {"plate": plate, "plastic": plastic, "opacity": opacity, "plastic_bgr": col.tolist(),
+                "seed": int(seed), "noise": float(noise), "blur_px": float(blur_px),
+                "jpeg_quality": jpeg_quality, "clutter": bool(clutter), "supersample": ss,
+                "edge_mm": edge_mm, "edge_softness_per_height": EDGE_SOFTNESS_PER_HEIGHT,
+                "lighting": {"exposure": lighting.exposure, "gradient": list(map(float, lighting.gradient)),
+                             "vignetting": lighting.vignetting, "glare": lighting.glare},
+                "width_definition": "distance between the 50 % coverage points of the bead edges"}
+    model = model or {}
+    truth = ScanTruth(camera=camera, widths=table, model_spec=str(model.get("spec", "")),
+                      values=dict(model.get("values", {})), settings=settings)
+    return Rendered(image=image, truth=truth, encoded=encoded)
+
+
+def true_widths(manifest: Manifest, widths: WidthTable | None) -> WidthTable:
+    """The width truth per sample: ``widths`` itself, or the commanded widths at the stations."""
+    if widths is not None:
+        n = len(widths)
+        return WidthTable(track=widths.track, s_mm=widths.s_mm, x_mm=widths.x_mm, y_mm=widths.y_mm,
+                          t_s=widths.t_s, width_mm=widths.width_mm, width_sd_mm=np.zeros(n),
+                          valid=np.ones(n, bool))
+    smp = sample_points(manifest, ds_mm=0.25)
+    n = len(smp)
+    return WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                      width_mm=smp.width_nominal_mm, width_sd_mm=np.zeros(n), valid=np.ones(n, bool))
+
+
+def _light_field(W, H, lighting: Lighting, rng) -> np.ndarray:
+    """Exposure x (1 + gradient) x (1 - vignetting r^2), r = 1 at the image corners."""
+    gx, gy = lighting.gradient
+    u = np.linspace(-1, 1, W, dtype=np.float32)[None, :]
+    v = np.linspace(-1, 1, H, dtype=np.float32)[:, None]
+    r2 = (u * u + v * v) / 2.0
+    return (lighting.exposure * (1.0 + 0.5 * gx * u + 0.5 * gy * v) * (1.0 - lighting.vignetting * r2)).astype(np.float32)
+
+
+def _glare(W, H, amplitude, rng) -> np.ndarray:
+    cu, cv = rng.uniform(0.2, 0.8) * W, rng.uniform(0.2, 0.8) * H
+    s = 0.25 * min(W, H)
+    u = np.arange(W, dtype=np.float32)[None, :]
+    v = np.arange(H, dtype=np.float32)[:, None]
+    return (amplitude * np.exp(-((u - cu) ** 2 + (v - cv) ** 2) / (2 * s * s))).astype(np.float32)
