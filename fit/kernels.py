@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 # Column order of the coefficient array (n_sets, N_COEF) of the general kernel.
 C_TAU, C_N, C_VREF, C_KBERN, C_KB, C_WSAT, C_KC, C_TOFF, C_TVL, C_ROFF, C_RVL, C_ATH, C_TAUTH = range(13)
@@ -49,22 +49,24 @@ _PI4 = math.pi / 4.0
 _TAU_MIN = 1e-6
 
 
-@njit(cache=True, fastmath=False)
-def linear_kernel(ve, dt, tau, kc, p0, out, vn_node, p_end):
+def linear_kernel(ve, ve_per_set, dt, tau, kc, p0, out, vn_node, p_end):
     """Exact solution of dP/dt = ve - max(P - Kc, 0)/tau with piecewise-constant ve.
 
-    ve (n_sets, n_int) mm/s; dt (n_int,) s; tau, kc, p0 (n_sets,) s, mm, mm.
+    ve (n_sets, n_int) mm/s, or (1, n_int) shared if ve_per_set == 0; dt (n_int,) s;
+    tau, kc, p0 (n_sets,) s, mm, mm.
     Writes out (n_sets, n_int) mm of filament through the nozzle per interval,
     vn_node (n_sets, n_int+1) outflow at the nodes (mm/s), p_end (n_sets,) mm.
     """
-    n_sets, n_int = ve.shape
-    for i in range(n_sets):
+    n_sets = tau.shape[0]
+    n_int = ve.shape[1]
+    for i in prange(n_sets):
+        iv = i * ve_per_set
         ta = max(tau[i], _TAU_MIN)
         q = p0[i] - kc[i]          # pressure above the flow threshold (mm)
         vn_node[i, 0] = max(q, 0.0) / ta
         for k in range(n_int):
             h = dt[k]
-            v = ve[i, k]
+            v = ve[iv, k]
             tgt = v * ta
             if q >= 0.0:
                 if v >= 0.0:
@@ -148,8 +150,7 @@ def _preq0(c, vhead, on):
     return p
 
 
-@njit(cache=True)
-def general_kernel(ve, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_end):
+def general_kernel(ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_end):
     """Exponentially fitted theta scheme for the full nonlinear Preq and thermal ooze.
 
     ve (n_sets, n_int) mm/s; dt, vhead (mm/s), hgt (mm), on (bool) per interval;
@@ -157,8 +158,10 @@ def general_kernel(ve, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_
     Writes out (n_sets, n_int) mm of filament out of the nozzle per interval,
     vn_node (n_sets, n_int+1) mm/s, p_end, x_end (n_sets,).
     """
-    n_sets, n_int = ve.shape
-    for i in range(n_sets):
+    n_sets = coef.shape[0]
+    n_int = ve.shape[1]
+    for i in prange(n_sets):
+        iv = i * ve_per_set
         c = coef[i]
         a = c[C_ATH]
         tauth = max(c[C_TAUTH], 1e-9)
@@ -168,7 +171,7 @@ def general_kernel(ve, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_
         vn_node[i, 0] = 0.0
         for k in range(n_int):
             h = dt[k]
-            v = ve[i, k]
+            v = ve[iv, k]
             vh = vhead[k]
             onk = on[k]
             # Thermal source over the step, a*(X - vn)*dt, written as a*tau_th*(X0 - X1)
@@ -241,3 +244,56 @@ def play_operator(e, width, out):
             x = e[i, k]
             y = max(x - b, min(y, x))
             out[i, k] = y
+
+
+def deposit_kernel(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area):
+    """Cross-section A_i (mm^2) over the station windows (fit/context.py):
+    V(s_b) = C[pos] - (1 - frac) * dV[perm[pos]],  C = cumsum(dV[perm]),  dV = Af * out,
+    A_i = (V(hi_i) - V(lo_i)) / win_i."""
+    n_sets = out.shape[0]
+    m = perm.shape[0]
+    n_s = lo_pos.shape[0]
+    for i in prange(n_sets):
+        c = np.empty(m)
+        acc = 0.0
+        for j in range(m):
+            acc += out[i, perm[j]] * af
+            c[j] = acc
+        for k in range(n_s):
+            if win[k] > 1e-9:
+                a = lo_pos[k]
+                b = hi_pos[k]
+                v_lo = c[a] - (1.0 - lo_frac[k]) * out[i, perm[a]] * af
+                v_hi = c[b] - (1.0 - hi_frac[k]) * out[i, perm[b]] * af
+                area[i, k] = (v_hi - v_lo) / win[k]
+            else:
+                area[i, k] = 0.0
+
+
+def bead_width_kernel(area, h, h_per_set, printed, out):
+    """fit.geometry.bead_width_mm for (n_sets, n_s) areas; heights h (mm) of shape
+    (n_sets, n_s) if h_per_set else (1, n_s); NaN at stations never printed."""
+    n_sets, n_s = area.shape
+    for i in prange(n_sets):
+        ih = i * h_per_set
+        for k in range(n_s):
+            if printed[k]:
+                w, _ = _bead_width(area[i, k], max(h[ih, k], 1e-6))
+                out[i, k] = w
+            else:
+                out[i, k] = np.nan
+
+
+# Each kernel twice: serial (one or a few parameter sets: no thread start-up cost) and
+# parallel over parameter sets (prange; emcee ensembles, 64+ sets).
+_PY = {"linear": linear_kernel, "general": general_kernel, "deposit": deposit_kernel,
+       "bead_width": bead_width_kernel}
+SERIAL = {k: njit(cache=True)(f) for k, f in _PY.items()}
+PARALLEL = {k: njit(cache=True, parallel=True)(f) for k, f in _PY.items()}
+#: Parameter sets from which the parallel kernels pay off.
+PARALLEL_MIN_SETS = 8
+
+
+def kernel(name: str, n_sets: int):
+    """The compiled kernel ``name`` suited to ``n_sets`` parameter sets."""
+    return (PARALLEL if n_sets >= PARALLEL_MIN_SETS else SERIAL)[name]

@@ -23,7 +23,6 @@ from calib.errors import UserError
 from fit import kernels as K
 from fit.context import SimContext, profile_dict
 from fit.effects import REGISTRY, Effect
-from fit.geometry import bead_width_mm
 from fit.params import Param
 
 # Kernel defaults when an effect is absent: linear (n=1), no other term.
@@ -177,42 +176,48 @@ class Model:
         th = self._theta2d(theta)
         n = th.shape[0]
         pds = self._pdicts(th)
-        ve = np.broadcast_to(ctx.ve_mm_s, (n, len(ctx.dt_s)))
+        n_int = len(ctx.dt_s)
+        ve = ctx.ve_mm_s[None, :]
         for e, p in zip(self.effects, pds):
             if "command" in e.stages():
-                ve = np.asarray(e.command(ctx, ve, p), dtype=float)
-                if ve.shape != (n, len(ctx.dt_s)):
+                ve = np.asarray(e.command(ctx, np.broadcast_to(ve, (n, n_int)), p), dtype=float)
+                if ve.shape != (n, n_int):
                     raise UserError(f"effect {e.name}: command() returned shape {ve.shape}, "
-                                    f"expected {(n, len(ctx.dt_s))}")
-        ve = np.ascontiguousarray(ve, dtype=float)
+                                    f"expected {(n, n_int)}")
+        ve_per_set = int(ve.shape[0] == n and n > 1)
+        ve = np.ascontiguousarray(ve if ve_per_set else ve[:1], dtype=float)
         coef = np.tile(_COEF_DEFAULT, (n, 1))
         for e, p in zip(self.effects, pds):
             if e.nozzle_term:
                 e.nozzle(p, coef)
         p0 = np.zeros(n) if p0_mm is None else np.broadcast_to(np.asarray(p0_mm, float), (n,)).copy()
-        out = np.empty_like(ve)
-        vn = np.empty((n, len(ve[0]) + 1))
+        out = np.empty((n, n_int))
+        vn = np.empty((n, n_int + 1))
         p_end = np.empty(n)
         x_end = np.zeros(n)
         if self._linear:
-            K.linear_kernel(ve, ctx.dt_s, np.ascontiguousarray(coef[:, K.C_TAU]),
+            K.kernel("linear", n)(ve, ve_per_set, ctx.dt_s, np.ascontiguousarray(coef[:, K.C_TAU]),
                             np.ascontiguousarray(coef[:, K.C_KC]), p0, out, vn, p_end)
         else:
-            K.general_kernel(ve, ctx.dt_s, ctx.v_head_mm_s, ctx.h_mm, ctx.on_track, coef,
+            K.kernel("general", n)(ve, ve_per_set, ctx.dt_s, ctx.v_head_mm_s, ctx.h_mm, ctx.on_track, coef,
                              ctx.filament_area_mm2, p0, out, vn, p_end, x_end)
         area = self._deposit(ctx, out)
-        h = np.broadcast_to(ctx.s_height_mm, area.shape)
+        h = ctx.s_height_mm[None, :]
         for e, p in zip(self.effects, pds):
             if "height" in e.stages():
-                h = np.asarray(e.height(ctx, h, p), dtype=float)
-        h = np.broadcast_to(h, area.shape)
-        w = bead_width_mm(area, np.maximum(h, 1e-6))
-        for e, p in zip(self.effects, pds):
-            if "width" in e.stages():
-                w = np.asarray(e.width(ctx, w, p), dtype=float)
-        w = np.where(ctx.printed, np.maximum(w, 0.0), np.nan)
-        return Simulation(out_mm=out, vn_node_mm_s=vn, ve_mm_s=ve, p_end_mm=p_end, x_end_mm_s=x_end,
-                          widths_mm=w, height_mm=np.array(h), area_mm2=area)
+                h = np.asarray(e.height(ctx, np.broadcast_to(h, area.shape), p), dtype=float)
+        h_per_set = int(h.shape[0] == n and n > 1)
+        h = np.ascontiguousarray(np.broadcast_to(h, (n if h_per_set else 1, area.shape[1])), dtype=float)
+        w = np.empty_like(area)
+        K.kernel("bead_width", n)(area, h, h_per_set, ctx.printed, w)
+        if self._width:
+            for e, p in zip(self.effects, pds):
+                if "width" in e.stages():
+                    w = np.asarray(e.width(ctx, w, p), dtype=float)
+            w = np.maximum(w, 0.0)
+        return Simulation(out_mm=out, vn_node_mm_s=vn, ve_mm_s=np.broadcast_to(ve, (n, n_int)),
+                          p_end_mm=p_end, x_end_mm_s=x_end,
+                          widths_mm=w, height_mm=np.broadcast_to(h, area.shape), area_mm2=area)
 
     @staticmethod
     def _deposit(ctx: SimContext, out: np.ndarray) -> np.ndarray:
@@ -220,12 +225,10 @@ class Model:
         n = out.shape[0]
         if len(ctx.perm) == 0:
             return np.zeros((n, ctx.n_samples))
-        dv = out[:, ctx.perm] * ctx.filament_area_mm2
-        c = np.cumsum(dv, axis=1)
-        v_lo = c[:, ctx.lo_pos] - (1.0 - ctx.lo_frac) * dv[:, ctx.lo_pos]
-        v_hi = c[:, ctx.hi_pos] - (1.0 - ctx.hi_frac) * dv[:, ctx.hi_pos]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(ctx.win_mm > 1e-9, (v_hi - v_lo) / np.maximum(ctx.win_mm, 1e-9), 0.0)
+        area = np.empty((n, ctx.n_samples))
+        K.kernel("deposit", n)(out, ctx.perm, ctx.lo_pos, ctx.lo_frac, ctx.hi_pos, ctx.hi_frac, ctx.win_mm,
+                         ctx.filament_area_mm2, area)
+        return area
 
     def predict(self, ctx: SimContext, theta) -> np.ndarray:
         """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed."""
