@@ -25,8 +25,6 @@ from patterns.manifest import Manifest, Timeline
 COVARIATES: dict[str, tuple[str, str]] = {
     "time_since_flow_change_s": ("s", "time since the commanded flow last differed from its "
                                  "current value by more than 10 %"),
-    "flow_step_mm3_s": ("mm^3/s", "size and sign of that last commanded flow change "
-                        "(current minus previous flow)"),
     "time_since_stop_s": ("s", "time since the head last stood still or the extruder last "
                           "stopped/retracted"),
     "last_stop_duration_s": ("s", "how long that last stop lasted"),
@@ -132,7 +130,6 @@ def compute_covariates(manifest: Manifest, track, s_mm, t_s=None, x_mm=None, y_m
     tol = rel_change * np.maximum(np.abs(q), 0.05 * qmax)
     j_change = _last_index_outside(q, tol, k)
     t_change = np.where(j_change >= 0, tl.t_s[np.maximum(j_change, 0)], tl.t_s[0])
-    q_prev = np.where(j_change >= 0, q[np.maximum(j_change, 0)], 0.0)
 
     stopped = (tl.v_mm_s < stop_speed_mm_s) | (tl.ve_mm_s <= 0)
     last_stop, stop_len = _last_true_and_run_length(stopped, tl.t_s)
@@ -153,7 +150,6 @@ def compute_covariates(manifest: Manifest, track, s_mm, t_s=None, x_mm=None, y_m
     ls = last_stop[k]
     vals = {
         "time_since_flow_change_s": t_s - t_change,
-        "flow_step_mm3_s": q[k] - q_prev,
         "time_since_stop_s": np.where(ls >= 0, t_s - tl.t_s[np.maximum(ls, 0)], t_s - tl.t_s[0]),
         "last_stop_duration_s": np.where(ls >= 0, stop_len[np.maximum(ls, 0)], 0.0),
         "flow_mm3_s": q[k],

@@ -29,9 +29,9 @@ NOT_CANDIDATES = frozenset({"firmware_pa"})
 
 #: The covariates each library effect leaves its mark on (for the verdict's evidence).
 EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
-    "pa": ("time_since_flow_change_s", "flow_step_mm3_s", "accel_mm_s2"),
+    "pa": ("time_since_flow_change_s", "accel_mm_s2"),
     "thermal": ("time_since_stop_s", "last_stop_duration_s", "time_since_flow_change_s"),
-    "backpressure": ("width_nominal_mm", "flow_step_mm3_s"),
+    "backpressure": ("width_nominal_mm"),
     "nonlinear": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
     "bernoulli": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
     "backlash": ("time_since_stop_s", "time_since_flow_change_s", "e_mm"),
@@ -202,6 +202,11 @@ def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
                      f"correction){loo}{ev}. RMS falls from {1000 * b.rms_mm:.1f} to "
                      f"{1000 * best.rms_mm_after:.1f} um, reduced chi-square from {b.chi2_nu:.2f} "
                      f"to {best.chi2_nu_after:.2f}.{runner} Fit it with: {d.command}")
+        if best.chi2_nu_after > 2.0:
+            d.verdict += (f" But {best.effect} explains only part of it: reduced chi-square stays at "
+                          f"{best.chi2_nu_after:.2f}, and {cov_txt}. If no library effect fits, "
+                          f"write one that depends on {top_cov.name if top_cov else 'that covariate'} "
+                          "(docs/DISCOVER.md) and pass it with --effects.")
     elif b.chi2_nu > 1.5 and top_cov is not None and top_cov.score > 0.05:
         d.verdict = (f"{head} No effect in the library improves the fit enough (best Delta BIC "
                      f"{best.delta_bic:.1f} for {best.effect}). " if best else f"{head} ") + \

@@ -1,0 +1,81 @@
+"""`calib diagnose`: which physical effect is the model missing?"""
+from __future__ import annotations
+
+import json
+import sys
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "diagnose", help="find which physical effect the model is missing",
+        description="Fit MODEL, score its residuals against physical covariates of the print "
+                    "(time since a flow change or a stop, flow, speed, acceleration, width, "
+                    "heading, x, y, E), add every library effect not in the model (and your "
+                    "own from --effects) in turn, rank them by the drop in BIC, and say in "
+                    "plain words which effect is most likely missing and how to fit it.")
+    p.add_argument("widths", help="widths CSV from `calib measure`")
+    p.add_argument("--manifest", required=True, help="the pattern's NAME.manifest.json")
+    p.add_argument("--model", required=True, metavar="SPEC", help="the model to diagnose, e.g. pa")
+    p.add_argument("--effects", metavar="FILE.py",
+                   help="a Python file with your own Effect classes; they become candidates too")
+    p.add_argument("--confirm", type=int, default=0, metavar="N",
+                   help="confirm the N best candidates with a full fit (emcee + PSIS-LOO)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--json", action="store_true", help="print the diagnosis as JSON on stdout")
+    p.add_argument("-o", "--output", metavar="diag.json", help="also write the JSON here")
+    p.add_argument("--plots", metavar="DIR", help="write one plot per top covariate here")
+    return p
+
+
+def run(args) -> int:
+    from calib.commands.compare import load_inputs
+    from calib.fileio import atomic_write_text
+    from calib.errors import UserError
+    from fit.compare import observe
+    from fit.diagnose import diagnose
+    from fit.effects import REGISTRY
+    from fit.model import build_model
+
+    if args.confirm < 0:
+        raise UserError("--confirm must be 0 or more")
+    manifest, table, extra = load_inputs(args.widths, args.manifest, args.effects)
+    build_model(args.model, manifest.printer, extra_effects=extra)  # bad spec -> one line
+    obs = observe(manifest, table)
+    eff = f" --effects {args.effects}" if args.effects else ""
+    d = diagnose(obs, args.model, lambda s: build_model(s, manifest.printer, extra_effects=extra),
+                 list(REGISTRY), [c.name for c in extra], confirm_top=args.confirm,
+                 seed=args.seed, progress=sys.stderr.isatty(),
+                 command_prefix=f"calib fit {args.widths} --manifest {args.manifest}", effects_arg=eff)
+    doc = d.to_json()
+    doc.update({"widths": str(args.widths), "manifest": str(args.manifest),
+                "effects": str(args.effects) if args.effects else None})
+    text = json.dumps(doc, indent=1)
+    if args.output:
+        atomic_write_text(args.output, text)
+    if args.json:
+        print(text)
+    else:
+        print(format_diagnosis(doc))
+    if args.plots:
+        from calib.report import plot_covariates
+        for path in plot_covariates(d, args.plots):
+            print(f"wrote {path}", file=sys.stderr)
+    return 0
+
+
+def format_diagnosis(doc: dict) -> str:
+    out = [f"model {doc['model']}: RMS {1000 * doc['rms_mm']:.1f} um, reduced chi-square "
+           f"{doc['chi2_nu']:.2f}", "", "residual structure (share of residual variance explained "
+           "beyond chance):"]
+    for c in doc["covariates"][:6]:
+        out.append(f"  {c['name']:<28} {c['score']:.3f}   (R^2 {c['r2']:.3f}, p {c['p_value']:.3g})")
+    out += ["", "candidate effects (drop in BIC; after correlation correction; RMS after):"]
+    for c in doc["candidates"]:
+        if c.get("error"):
+            out.append(f"  {c['effect']:<16} failed: {c['error']}")
+            continue
+        out.append(f"  {c['effect']:<16} {c['delta_bic']:>10.1f} {c['delta_bic_eff']:>9.1f}   "
+                   f"{1000 * c['rms_mm_after']:.1f} um  chi2_nu {c['chi2_nu_after']:.2f}"
+                   + ("  (your effect)" if c.get("user") else ""))
+    out += ["", doc["verdict"]]
+    return "\n".join(out)

@@ -1,0 +1,226 @@
+"""Plots of comparisons and diagnoses, and the one-file HTML report.
+
+Every figure is drawn with matplotlib (Agg) and either saved as PNG or embedded in the
+report as a base64 data URI, so the report is a single self-contained file that opens
+in any browser without network access.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from calib.fileio import atomic_write_bytes, atomic_write_text  # noqa: E402
+
+#: Model colours, in order of the comparison (best first). Data is drawn in grey.
+COLOURS = ("#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b")
+DATA_COLOUR = "#7f7f7f"
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def fig_tracks(obs, fits, max_tracks: int = 12):
+    """Data and every model's width along each track (top), residuals (bottom), in mm."""
+    smp = obs.samples
+    tids = list(dict.fromkeys(smp.track.tolist()))[:max_tracks]
+    ncol = min(3, len(tids))
+    nrow = int(np.ceil(len(tids) / ncol))
+    fig, axes = plt.subplots(2 * nrow, ncol, figsize=(5 * ncol, 3.2 * nrow), squeeze=False,
+                             gridspec_kw={"height_ratios": [2, 1] * nrow})
+    for i, tid in enumerate(tids):
+        r, c = 2 * (i // ncol), i % ncol
+        ax, axr = axes[r, c], axes[r + 1, c]
+        m = smp.track == tid
+        s = smp.s_mm[m]
+        ax.plot(s, obs.width_mm[m], ".", ms=2, color=DATA_COLOUR, label="measured")
+        for j, f in enumerate(fits):
+            col = COLOURS[j % len(COLOURS)]
+            ax.plot(s, f.pred_mm[m], "-", lw=1.2, color=col, label=f.spec)
+            axr.plot(s, 1000 * f.resid_mm[m], "-", lw=0.8, color=col)
+        axr.axhline(0, color="k", lw=0.5)
+        ax.set_title(f"track {tid}", fontsize=9)
+        ax.set_ylabel("width (mm)")
+        axr.set_ylabel("resid (um)")
+        axr.set_xlabel("s (mm)")
+        if i == 0:
+            ax.legend(fontsize=7)
+    for k in range(len(tids), nrow * ncol):
+        axes[2 * (k // ncol), k % ncol].axis("off")
+        axes[2 * (k // ncol) + 1, k % ncol].axis("off")
+    fig.tight_layout()
+    return fig
+
+
+def plot_tracks(obs, fits, out_dir) -> Path:
+    path = Path(out_dir) / "compare_tracks.png"
+    atomic_write_bytes(path, _png(fig_tracks(obs, fits)))
+    return path
+
+
+def fig_covariate(diag, score):
+    """Residual (um) against one covariate with its binned-mean curve."""
+    from fit.covariates import COVARIATES
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    x = diag.cov[score.name]
+    ax.plot(x, 1000 * diag.base.resid_mm, ".", ms=2, color=DATA_COLOUR, alpha=0.5)
+    if score.bin_centres is not None and len(score.bin_centres):
+        ax.plot(score.bin_centres, 1000 * np.asarray(score.bin_means), "o-", color=COLOURS[0])
+    ax.axhline(0, color="k", lw=0.5)
+    unit = COVARIATES.get(score.name, ("", ""))[0]
+    ax.set_xlabel(f"{score.name} ({unit})")
+    ax.set_ylabel(f"residual of {diag.model} (um)")
+    ax.set_title(f"{score.name}: score {score.score:.2f}", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def plot_covariates(diag, out_dir, top: int = 4) -> list[Path]:
+    out = []
+    for s in diag.covariates[:top]:
+        p = Path(out_dir) / f"residual_vs_{s.name}.png"
+        atomic_write_bytes(p, _png(fig_covariate(diag, s)))
+        out.append(p)
+    return out
+
+
+def fig_candidates(diag):
+    """Bar chart: drop in BIC per candidate effect (log scale), best first."""
+    cs = [c for c in diag.candidates if np.isfinite(c.delta_bic)][:10]
+    fig, ax = plt.subplots(figsize=(6, 0.35 * len(cs) + 1))
+    vals = [max(c.delta_bic, 0.1) for c in cs]
+    ax.barh([c.effect for c in cs][::-1], vals[::-1],
+            color=[COLOURS[1] if c.delta_bic_eff > 10 else DATA_COLOUR for c in cs][::-1])
+    ax.set_xscale("log")
+    ax.set_xlabel("drop in BIC when added (blue: supported)")
+    fig.tight_layout()
+    return fig
+
+
+def fig_corner(fit):
+    """Corner plot of a full fit's posterior draws."""
+    import corner
+    names = fit.names + ["noise.extra_mm"]
+    fig = corner.corner(fit.draws, labels=names, quantiles=[0.16, 0.5, 0.84], show_titles=True,
+                        title_fmt=".3g", title_kwargs={"fontsize": 8})
+    return fig
+
+
+def _img(data: bytes, alt: str, width: str = "100%") -> str:
+    b64 = base64.b64encode(data).decode("ascii")
+    return f'<img alt="{html.escape(alt)}" style="max-width:{width}" src="data:image/png;base64,{b64}">'
+
+
+def _image_file(path, max_px: int = 1400) -> bytes:
+    """A PNG of an image file, downscaled so the report stays small."""
+    from PIL import Image
+    im = Image.open(path)
+    im.thumbnail((max_px, max_px))
+    buf = io.BytesIO()
+    im.convert("RGB").save(buf, format="PNG")
+    return buf.getvalue()
+
+
+CSS = """body{font-family:sans-serif;margin:24px;max-width:1150px;color:#222}
+h1{font-size:22px}h2{font-size:18px;border-bottom:1px solid #ccc;margin-top:28px}
+table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
+th{background:#eee}td:first-child{text-align:left}.verdict{background:#eef6ff;border-left:5px solid #1f77b4;
+padding:10px 14px;font-size:15px}.grid{display:flex;flex-wrap:wrap;gap:8px}.grid img{max-width:48%}
+code{background:#f4f4f4;padding:1px 4px}"""
+
+
+def build_report(title: str, obs=None, comparison=None, diagnosis=None, compare_doc=None,
+                 diagnose_doc=None, fit_doc=None, scan=None, overlay=None) -> str:
+    """The HTML text of the report from whatever exists (every part optional)."""
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+             f"<style>{CSS}</style></head><body><h1>{html.escape(title)}</h1>"]
+    if diagnose_doc is not None:
+        parts.append(f"<h2>Verdict</h2><p class='verdict'>{html.escape(diagnose_doc.get('verdict', ''))}</p>")
+        if diagnose_doc.get("command"):
+            parts.append(f"<p>Next: <code>{html.escape(diagnose_doc['command'])}</code></p>")
+    if scan or overlay:
+        parts.append("<h2>Scan and measurement overlay</h2><div class='grid'>")
+        for p, alt in ((scan, "scan"), (overlay, "QA overlay")):
+            if p:
+                parts.append(_img(_image_file(p), alt, "48%"))
+        parts.append("</div>")
+    if compare_doc is not None:
+        parts.append("<h2>Model comparison</h2>" + _compare_table(compare_doc["models"]))
+    if obs is not None and comparison is not None:
+        parts.append("<h2>Data vs models, track by track</h2>")
+        parts.append(_img(_png(fig_tracks(obs, comparison.fits)), "data vs models"))
+    if diagnose_doc is not None:
+        parts.append("<h2>Candidate effects</h2>" + _candidate_table(diagnose_doc["candidates"]))
+        parts.append("<h2>Residual structure</h2>" + _cov_table(diagnose_doc["covariates"][:8]))
+    if diagnosis is not None:
+        parts.append(_img(_png(fig_candidates(diagnosis)), "candidates", "60%"))
+        parts.append("<div class='grid'>" + "".join(
+            _img(_png(fig_covariate(diagnosis, s)), s.name, "48%") for s in diagnosis.covariates[:4])
+            + "</div>")
+    if comparison is not None:
+        full = [f for f in comparison.fits if f.draws is not None]
+        if full:
+            parts.append("<h2>Posterior (corner plots)</h2><div class='grid'>")
+            parts += [f"<div><p>{html.escape(f.spec)}</p>{_img(_png(fig_corner(f)), f.spec)}</div>"
+                      for f in full[:3]]
+            parts.append("</div>")
+    if fit_doc is not None:
+        parts.append("<h2>Fit</h2><pre>" + html.escape(_short_json(fit_doc)) + "</pre>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _fmt(x, fmt="{:.1f}"):
+    return "-" if x is None or (isinstance(x, float) and x != x) else fmt.format(x)
+
+
+def _compare_table(rows) -> str:
+    h = ("model", "RMS (um)", "chi2_nu", "BIC", "dBIC", "elpd_loo", "se", "d elpd", "d se", "parameters")
+    out = ["<table><tr>" + "".join(f"<th>{x}</th>" for x in h) + "</tr>"]
+    for r in rows:
+        ps = ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items() if v is not None)
+        cells = (r["model"], _fmt(1000 * r["rms_mm"]), _fmt(r["chi2_nu"], "{:.2f}"), _fmt(r["bic"]),
+                 _fmt(r["delta_bic"]), _fmt(r.get("elpd_loo")), _fmt(r.get("elpd_loo_se")),
+                 _fmt(r.get("delta_elpd_loo")), _fmt(r.get("delta_elpd_loo_se")), ps)
+        out.append("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in cells) + "</tr>")
+    return "".join(out) + "</table>"
+
+
+def _candidate_table(cands) -> str:
+    out = ["<table><tr><th>effect added</th><th>drop in BIC</th><th>corrected</th>"
+           "<th>RMS after (um)</th><th>chi2_nu after</th></tr>"]
+    for c in cands:
+        out.append(f"<tr><td>{html.escape(c['effect'])}{' (yours)' if c.get('user') else ''}</td>"
+                   f"<td>{_fmt(c['delta_bic'])}</td><td>{_fmt(c.get('delta_bic_eff'))}</td>"
+                   f"<td>{_fmt(None if c['rms_mm_after'] is None else 1000 * c['rms_mm_after'])}</td>"
+                   f"<td>{_fmt(c.get('chi2_nu_after'), '{:.2f}')}</td></tr>")
+    return "".join(out) + "</table>"
+
+
+def _cov_table(covs) -> str:
+    out = ["<table><tr><th>covariate</th><th>score</th><th>R^2</th><th>p</th></tr>"]
+    for c in covs:
+        out.append(f"<tr><td>{html.escape(c['name'])}</td><td>{_fmt(c['score'], '{:.3f}')}</td>"
+                   f"<td>{_fmt(c.get('r2'), '{:.3f}')}</td><td>{_fmt(c.get('p_value'), '{:.3g}')}</td></tr>")
+    return "".join(out) + "</table>"
+
+
+def _short_json(doc) -> str:
+    import json
+    keep = {k: v for k, v in doc.items() if not isinstance(v, list) or len(v) < 50}
+    return json.dumps(keep, indent=1)[:6000]
+
+
+def write_report(path, text: str) -> Path:
+    return atomic_write_text(path, text)
