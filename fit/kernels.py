@@ -197,21 +197,43 @@ def general_kernel(ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, out, vn_nod
                 vn1 = 0.0
                 p1 = b
             else:
+                # g(x) = Preq(x) + cc*x - b is increasing with g(0+) < 0 <= g(b/cc).
+                # Newton from the linearised guess; a step leaving the bracket falls back to
+                # an Illinois false-position step (bisection stalls near vn = 0 for the
+                # concave power law, where Newton from the right overshoots below zero).
                 lo = 0.0
+                glo = _preq0(c, vh, onk) - b
                 hi = b / cc
-                x = min(max(vn0, 1e-12), hi)
+                ghi = _preq(hi, c, af, vh, hgt[k], onk)[0]
+                pv, dv = _preq(max(vn0, 1e-12), c, af, vh, hgt[k], onk)
+                x = (b - pv + dv * vn0) / (dv + cc)
+                if not (lo < x < hi):
+                    x = min(max(vn0, 1e-12), 0.5 * hi)
+                side = 0
+                tol = 1e-13 * (1.0 + b)
                 for _ in range(60):
                     g, dg = _preq(x, c, af, vh, hgt[k], onk)
                     g += cc * x - b
+                    if abs(g) <= tol:
+                        break
                     if g > 0.0:
                         hi = x
+                        ghi = g
+                        if side == 1:
+                            glo *= 0.5
+                        side = 1
                     else:
                         lo = x
-                    dg += cc
-                    xn = x - g / dg
+                        glo = g
+                        if side == -1:
+                            ghi *= 0.5
+                        side = -1
+                    xn = x - g / (dg + cc)
                     if not (lo < xn < hi):
-                        xn = 0.5 * (lo + hi)
-                    if abs(xn - x) <= 1e-13 * (1.0 + x) or hi - lo <= 1e-13 * (1.0 + hi):
+                        xn = (lo * ghi - hi * glo) / (ghi - glo)
+                        if not (lo < xn < hi):
+                            xn = 0.5 * (lo + hi)
+                    if abs(xn - x) <= 1e-14 * (1.0 + x):
                         x = xn
                         break
                     x = xn
