@@ -1,0 +1,172 @@
+"""What the fitter fits: measured widths matched to the manifest that printed them.
+
+A :class:`ScanData` is one widths table (``measure``) with its manifest: the stations
+become :class:`patterns.manifest.Samples` (positions, normals, commanded width and
+height from the manifest's tracks, pass times from its timeline), the simulation
+context ``ctx`` is built on them, and the valid samples are ordered along each track
+(track, then arc length) for the AR(1) noise model of :mod:`fit.likelihood`.
+
+A :class:`FitData` is one or more ScanData of the same printer (a joint fit).
+
+Checks (each a one-line :class:`calib.errors.UserError`): the table has valid samples;
+every track id exists in the manifest; stations lie on their tracks (arc length within
+the track, x/y within ``POS_TOL_MM`` of the manifest's polyline), so a widths file paired
+with the wrong manifest is caught before any fitting.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calib.errors import UserError
+from measure.table import WidthTable
+from patterns.manifest import Manifest, Samples
+
+#: Largest allowed distance (mm) between a station's x/y in the widths file and the
+#: manifest's track at the same arc length (the registration error is ~0.01 mm; a wrong
+#: manifest is off by millimetres).
+POS_TOL_MM = 1.0
+#: Stations further apart than this along a track (mm) are treated as independent
+#: (a long run of invalid samples), besides the AR(1) decay.
+MAX_GAP_MM = 5.0
+
+
+@dataclass
+class ScanData:
+    """One scan. Arrays over all table rows unless named ``*_valid``/ordered.
+
+    name        label of the scan (file stem), used for per-scan parameters
+    manifest    the manifest that printed it
+    table       the widths table (all rows)
+    samples     stations of all rows (patterns.manifest.Samples)
+    ctx         simulation context on ``samples`` (model-specific; None until built)
+    order       (n_valid,) row indices of the valid samples, sorted by (track, s_mm)
+    y_mm, sd_mm (n_valid,) measured width and its sd at ``order`` (mm)
+    gap_mm      (n_valid,) arc length to the previous valid sample of the same track
+                (mm; inf at the first sample of each track)
+    """
+
+    name: str
+    manifest: Manifest
+    table: WidthTable
+    samples: Samples
+    order: np.ndarray
+    y_mm: np.ndarray
+    sd_mm: np.ndarray
+    gap_mm: np.ndarray
+    ctx: object = None
+    source: dict = field(default_factory=dict)
+
+    @property
+    def n_valid(self) -> int:
+        return len(self.order)
+
+    @property
+    def track_valid(self) -> np.ndarray:
+        return self.table.track[self.order]
+
+    @property
+    def s_valid_mm(self) -> np.ndarray:
+        return self.table.s_mm[self.order]
+
+
+@dataclass
+class FitData:
+    scans: list[ScanData]
+
+    @property
+    def n_valid(self) -> int:
+        return sum(s.n_valid for s in self.scans)
+
+    @classmethod
+    def load(cls, pairs, build_ctx: bool = True) -> "FitData":
+        """``pairs``: iterable of (widths CSV path, manifest path). Names from the CSV stems
+        (made unique)."""
+        scans = []
+        names: set[str] = set()
+        for widths, manifest in pairs:
+            table = WidthTable.load(widths)
+            man = Manifest.load(manifest)
+            name = Path(widths).stem
+            base, n = name, 2
+            while name in names:
+                name, n = f"{base}_{n}", n + 1
+            names.add(name)
+            sc = scan_from_table(table, man, name, build_ctx=build_ctx)
+            sc.source = {"widths": str(widths), "manifest": str(manifest)}
+            scans.append(sc)
+        if not scans:
+            raise UserError("no widths/manifest pair given")
+        return cls(scans)
+
+
+def samples_for_table(table: WidthTable, manifest: Manifest, name: str = "widths") -> Samples:
+    """Stations of the table rows, checked against the manifest (see module docstring)."""
+    ids = {tr.id: tr for tr in manifest.tracks}
+    unknown = sorted(set(np.unique(table.track).tolist()) - set(ids))
+    if unknown:
+        raise UserError(f"{name}: track id(s) {', '.join(map(str, unknown[:5]))} are not in the "
+                        "manifest; pair each widths file with the manifest it was measured against")
+    n = len(table)
+    cols = {k: np.full(n, np.nan) for k in ("x_mm", "y_mm", "t_s", "nx", "ny",
+                                             "width_nominal_mm", "height_mm")}
+    tl = manifest.timeline
+    if tl is None:
+        raise UserError(f"{name}: the manifest has no timeline (.timeline.npz); the fit needs it, "
+                        "regenerate the pattern with `calib pattern`")
+    from patterns.manifest import _first_passage_time
+
+    worst = 0.0
+    for tid in np.unique(table.track):
+        tr = ids[int(tid)]
+        rows = np.flatnonzero(table.track == tid)
+        s = table.s_mm[rows]
+        if np.any(s < -0.5) or np.any(s > tr.length_mm + 0.5):
+            raise UserError(f"{name}: track {tid} has stations at s up to {s.max():.1f} mm but the "
+                            f"manifest's track is {tr.length_mm:.1f} mm long; wrong manifest?")
+        pos, tan = tr.at(np.clip(s, 0, tr.length_mm))
+        d = np.hypot(pos[:, 0] - table.x_mm[rows], pos[:, 1] - table.y_mm[rows])
+        d = d[np.isfinite(d)]
+        if d.size:
+            worst = max(worst, float(np.median(d)))
+            if np.median(d) > POS_TOL_MM:
+                raise UserError(f"{name}: track {tid} stations are {np.median(d):.1f} mm (median) away "
+                                "from the manifest's track; the widths were measured against a "
+                                "different manifest")
+        on = tl.track == tr.id
+        cols["t_s"][rows] = _first_passage_time(tl.s_mm[on], tl.t_s[on], s)
+        cols["x_mm"][rows], cols["y_mm"][rows] = pos[:, 0], pos[:, 1]
+        cols["nx"][rows], cols["ny"][rows] = -tan[:, 1], tan[:, 0]
+        cols["width_nominal_mm"][rows] = tr.interp("width_mm", s)
+        cols["height_mm"][rows] = tr.interp("height_mm", s)
+    return Samples(track=table.track.copy(), s_mm=table.s_mm.copy(), **cols)
+
+
+def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
+                    build_ctx: bool = True, ctx=None) -> ScanData:
+    """Match a widths table to its manifest; build the simulation context unless given."""
+    if len(table) == 0:
+        raise UserError(f"{name}: the widths table is empty; run `calib measure` first")
+    samples = samples_for_table(table, manifest, name)
+    valid = table.valid & np.isfinite(table.width_mm) & np.isfinite(table.width_sd_mm) \
+        & (table.width_sd_mm > 0) & np.isfinite(samples.t_s)
+    if table.valid.any() and (table.valid & ~np.isfinite(table.width_mm)).any():
+        raise UserError(f"{name}: {int((table.valid & ~np.isfinite(table.width_mm)).sum())} valid "
+                        "sample(s) have NaN width; mark them valid=0 or re-measure")
+    if valid.sum() < 3:
+        raise UserError(f"{name}: only {int(valid.sum())} valid width sample(s); nothing to fit "
+                        "(check the scan's QA overlay)")
+    idx = np.flatnonzero(valid)
+    idx = idx[np.lexsort((table.s_mm[idx], table.track[idx]))]
+    tr, s = table.track[idx], table.s_mm[idx]
+    gap = np.concatenate([[np.inf], np.diff(s)])
+    new = np.concatenate([[True], tr[1:] != tr[:-1]]) | (gap > MAX_GAP_MM) | (gap <= 0)
+    gap = np.where(new, np.inf, gap)
+    if ctx is None and build_ctx:
+        from fit.context import SimContext
+        ctx = SimContext.build(manifest, samples)
+    return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
+                    y_mm=table.width_mm[idx].copy(), sd_mm=table.width_sd_mm[idx].copy(),
+                    gap_mm=gap, ctx=ctx)

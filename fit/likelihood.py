@@ -1,0 +1,248 @@
+"""Likelihood of measured widths given a model, and the joint posterior over several scans.
+
+Noise model (per valid sample i, along one track, stations ordered by arc length s):
+
+    r_i  = y_i - m_i(theta)                       residual (mm)
+    s_i^2 = width_sd_i^2 + sigma_extra^2          (mm^2) measurement sd from ``measure``
+                                                  plus a fitted extra term for everything
+                                                  the scan cannot see (bead wobble, model
+                                                  error, printer noise)
+    e_i  = r_i / s_i                              standardised residual
+    e_i  = phi_i e_{i-1} + sqrt(1 - phi_i^2) u_i,  phi_i = exp(-(s_i - s_{i-1}) / ell)
+    u_i  ~ N(0, 1)  or Student-t(nu) (robust option, heavy tails for blobs/glare)
+
+Why AR(1) along the track: stations are 0.25 mm apart but bead wobble, melt-pool
+surface tension and the optical blur correlate widths over ~0.5-2 mm, so treating the
+samples as independent overstates the information by the factor (1+rho)/(1-rho) and
+gives intervals that are too narrow (the calibration bench shows it). The exponential
+(Ornstein-Uhlenbeck) form is the continuous-distance version of an AR(1): with regular
+spacing ds it is AR(1) with rho = exp(-ds/ell), and it handles the gaps left by invalid
+samples exactly (the correlation across a gap of k steps is rho^k). The first sample of
+every track (and every new scan) starts a fresh chain with its stationary N(0, 1), so the
+sum of the pointwise terms is the *exact* joint log-likelihood of the stationary process,
+not only the conditional one. The pointwise terms (one per sample, conditional on the
+previous sample) are what PSIS-LOO uses; with correlated residuals that is a
+leave-one-out of the innovation, which is the usual choice for time series (Buerkner et
+al. 2020, "Approximate leave-future-out cross-validation").
+
+``ell`` (``noise.corr_len_mm``) is fitted with a log-uniform prior; ``AR1=False`` fixes
+phi = 0 (independent samples).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import gammaln
+
+from fit.priors import Prior, prior_from_param
+
+LOG2PI = math.log(2.0 * math.pi)
+
+#: Effects whose parameters belong to one scan in a joint fit (each scan has its own
+#: flow multiplier, filament diameter error and bed tilt; the extruder physics is shared).
+NUISANCE_EFFECTS = ("flow_gain", "bed_tilt", "flow", "tilt", "layer_height", "filament_diameter")
+
+SIGMA_NAME = "noise.sigma_extra_mm"
+CORR_NAME = "noise.corr_len_mm"
+
+
+@dataclass(frozen=True)
+class NoiseOptions:
+    """Noise model switches: AR(1) along tracks, Student-t innovations with ``student_nu``
+    degrees of freedom (None: Gaussian)."""
+
+    ar1: bool = True
+    student_nu: float | None = None
+    sigma_prior: Prior = field(default_factory=lambda: Prior("loguniform", 1e-4, 0.5))
+    corr_prior: Prior = field(default_factory=lambda: Prior("loguniform", 0.02, 50.0))
+
+
+def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None) -> np.ndarray:
+    """Pointwise log-likelihood (n_sets, n) of residuals under the AR(1) model above.
+
+    resid_mm        (n_sets, n) residuals y - m (mm), samples ordered along each track
+    sd_mm           (n,) measurement sd (mm)
+    sigma_extra_mm  (n_sets, 1) or scalar extra noise sd (mm)
+    phi             (n_sets, n) AR coefficient to the previous sample (0 at a track start),
+                    or None for independent samples
+    student_nu      None (Gaussian innovations) or degrees of freedom of Student-t innovations
+    """
+    r = np.atleast_2d(resid_mm)
+    s = np.sqrt(sd_mm ** 2 + np.asarray(sigma_extra_mm) ** 2)
+    e = r / s
+    if phi is None:
+        innov, var = e, np.ones_like(e)
+    else:
+        e_prev = np.concatenate([np.zeros((e.shape[0], 1)), e[:, :-1]], axis=1)
+        innov = e - phi * e_prev
+        var = 1.0 - phi * phi
+    if student_nu is None:
+        ll = -0.5 * (innov * innov / var + np.log(var) + LOG2PI)
+    else:
+        nu = float(student_nu)
+        c = gammaln(0.5 * (nu + 1)) - gammaln(0.5 * nu) - 0.5 * math.log(nu * math.pi)
+        ll = c - 0.5 * np.log(var) - 0.5 * (nu + 1) * np.log1p(innov * innov / (var * nu))
+    return ll - np.log(s)
+
+
+def ar1_phi(gap_mm: np.ndarray, corr_len_mm) -> np.ndarray:
+    """phi_i = exp(-gap_i / ell); gap = inf at a track start gives 0. Shapes (n,), (n_sets, 1)."""
+    return np.exp(-gap_mm[None, :] / np.asarray(corr_len_mm))
+
+
+def is_nuisance(param_name: str) -> bool:
+    return param_name.split(".", 1)[0] in NUISANCE_EFFECTS
+
+
+class JointProblem:
+    """The posterior over the shared physical parameters, per-scan nuisance and noise
+    parameters of one or several scans.
+
+    ``scans``: list of :class:`fit.data.ScanData` (ctx, y, sd, gaps), ``models``: one model
+    per scan with identical ``param_names`` (same spec; the profile may differ). Global
+    parameter names: shared ones as the model names them (``pa.tau_s``); per-scan ones get
+    ``@<scan name>`` appended when there is more than one scan.
+    """
+
+    def __init__(self, scans, models, noise: NoiseOptions = NoiseOptions(),
+                 prior_overrides: dict | None = None):
+        from fit.priors import apply_overrides
+
+        if len(scans) != len(models) or not scans:
+            raise ValueError("need one model per scan and at least one scan")
+        names0 = list(models[0].param_names)
+        for m in models[1:]:
+            if list(m.param_names) != names0:
+                raise ValueError("all scans of a joint fit need the same model parameters")
+        self.scans, self.models, self.noise = list(scans), list(models), noise
+        joint = len(scans) > 1
+        params = {p.name: p for p in models[0].params}
+        names: list[str] = []
+        priors: dict[str, Prior] = {}
+        self.index: list[np.ndarray] = []        # per scan: global index of each model param
+        self.noise_index: list[tuple[int, int | None]] = []
+        shared_pos = {}
+        for n in names0:
+            if not (joint and is_nuisance(n)):
+                shared_pos[n] = len(names)
+                names.append(n)
+                priors[n] = prior_from_param(params[n])
+        for k, sc in enumerate(scans):
+            idx = []
+            for n in names0:
+                if n in shared_pos:
+                    idx.append(shared_pos[n])
+                else:
+                    g = f"{n}@{sc.name}"
+                    idx.append(len(names))
+                    names.append(g)
+                    priors[g] = prior_from_param(params[n])
+            self.index.append(np.array(idx, dtype=int))
+        for sc in scans:
+            suffix = f"@{sc.name}" if joint else ""
+            i_sig = len(names)
+            names.append(SIGMA_NAME + suffix)
+            priors[SIGMA_NAME + suffix] = noise.sigma_prior
+            i_cor = None
+            if noise.ar1:
+                i_cor = len(names)
+                names.append(CORR_NAME + suffix)
+                priors[CORR_NAME + suffix] = noise.corr_prior
+            self.noise_index.append((i_sig, i_cor))
+        if prior_overrides:
+            priors = apply_overrides(priors, prior_overrides)
+        self.param_names = names
+        self.priors = [priors[n] for n in names]
+        self.n_obs = int(sum(sc.n_valid for sc in scans))
+
+    # -- parameter vector ---------------------------------------------------------
+    @property
+    def ndim(self) -> int:
+        return len(self.param_names)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        return np.array([[p.lower, p.upper] for p in self.priors])
+
+    def default_theta(self) -> np.ndarray:
+        th = np.empty(self.ndim)
+        for k, m in enumerate(self.models):
+            th[self.index[k]] = m.default_theta()
+        for i_sig, i_cor in self.noise_index:
+            th[i_sig] = 0.01
+            if i_cor is not None:
+                th[i_cor] = 0.5
+        lo, hi = self.bounds.T
+        return np.clip(th, lo, hi)
+
+    def log_prior(self, theta) -> np.ndarray:
+        th = np.atleast_2d(theta)
+        lp = np.zeros(th.shape[0])
+        for j, p in enumerate(self.priors):
+            lp += p.log_prob(th[:, j])
+        return lp
+
+    def model_theta(self, theta, k: int) -> np.ndarray:
+        """The (n_sets, n_model_params) parameter array of scan ``k``'s model."""
+        return np.atleast_2d(theta)[:, self.index[k]]
+
+    # -- evaluation ---------------------------------------------------------------
+    def predict(self, theta, k: int) -> np.ndarray:
+        """Model widths (n_sets, n_rows) of scan ``k`` at all its rows (mm)."""
+        return np.atleast_2d(self.models[k].predict(self.scans[k].ctx, self.model_theta(theta, k)))
+
+    def log_prob(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """(log posterior (n_sets,), pointwise log-likelihood (n_sets, n_obs))."""
+        th = np.atleast_2d(np.asarray(theta, dtype=float))
+        lp = self.log_prior(th)
+        ll = np.full((th.shape[0], self.n_obs), -np.inf)
+        ok = np.isfinite(lp)
+        for k, m in enumerate(self.models):
+            if ok.any() and hasattr(m, "log_prior"):
+                lpm = np.asarray(m.log_prior(self.model_theta(th[ok], k)), dtype=float).reshape(-1)
+                sub = np.flatnonzero(ok)
+                ok[sub[~np.isfinite(lpm)]] = False
+        if ok.any():
+            ll_ok = self.pointwise(th[ok])
+            ll[ok] = ll_ok
+        total = np.where(ok, lp + ll.sum(axis=1), -np.inf)
+        total = np.where(np.isfinite(total), total, -np.inf)
+        return total, ll
+
+    def pointwise(self, theta) -> np.ndarray:
+        """Pointwise log-likelihood (n_sets, n_obs) for parameters inside the support."""
+        th = np.atleast_2d(theta)
+        parts = []
+        for k, sc in enumerate(self.scans):
+            pred = self.predict(th, k)[:, sc.order]
+            resid = sc.y_mm[None, :] - pred
+            i_sig, i_cor = self.noise_index[k]
+            sig = th[:, i_sig:i_sig + 1]
+            phi = ar1_phi(sc.gap_mm, th[:, i_cor:i_cor + 1]) if i_cor is not None else None
+            ll = pointwise_loglik(resid, sc.sd_mm, sig, phi, self.noise.student_nu)
+            parts.append(np.where(np.isfinite(ll), ll, -np.inf))
+        return np.concatenate(parts, axis=1)
+
+    def residuals(self, theta) -> list[np.ndarray]:
+        """Residuals y - m (mm) at the valid samples of each scan, for one theta."""
+        th = np.atleast_2d(theta)[:1]
+        return [sc.y_mm - self.predict(th, k)[0, sc.order] for k, sc in enumerate(self.scans)]
+
+    def whitened_residuals(self, theta) -> np.ndarray:
+        """Innovations u_i (dimensionless, ~N(0,1) if the model is right), all scans."""
+        th = np.atleast_2d(theta)[:1]
+        out = []
+        for k, sc in enumerate(self.scans):
+            r = sc.y_mm - self.predict(th, k)[0, sc.order]
+            i_sig, i_cor = self.noise_index[k]
+            s = np.sqrt(sc.sd_mm ** 2 + th[0, i_sig] ** 2)
+            e = r / s
+            if i_cor is None:
+                out.append(e)
+                continue
+            phi = ar1_phi(sc.gap_mm, th[:1, i_cor:i_cor + 1])[0]
+            ep = np.concatenate([[0.0], e[:-1]])
+            out.append((e - phi * ep) / np.sqrt(1 - phi * phi))
+        return np.concatenate(out)

@@ -1,0 +1,174 @@
+"""Results of a fit: :class:`MapResult` (fast point estimate) and :class:`FitResult` (the
+posterior), with ``fit.json`` read/write (schema ``calib.fit/1``).
+
+Information criteria (Schwarz 1978; Vehtari, Gelman & Gabry 2017):
+
+    BIC  = k ln n - 2 ln L(theta_MAP)        k all fitted parameters incl. noise, n samples
+    AIC  = 2 k - 2 ln L(theta_MAP)
+    elpd_loo = sum_i log( sum_s w_is p(y_i | theta_s) )   PSIS weights w (Pareto-smoothed)
+    chi2_nu  = sum_i (r_i / width_sd_i)^2 / (n - k_model)  measurement sd only, so a model
+               that misses an effect shows chi2_nu >> 1 even though sigma_extra absorbs it
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calib.errors import UserError
+from calib.fileio import atomic_write_text
+
+SCHEMA = "calib.fit/1"
+
+
+@dataclass
+class MapResult:
+    """Maximum a posteriori fit.
+
+    theta        (k,) MAP parameters (units as ``param_names``)
+    cov          (k, k) Laplace covariance (inverse Hessian of -log posterior)
+    loglik       ln L at the MAP;  pointwise (n,) its per-sample terms
+    rms_mm       residual RMS over valid samples (mm)
+    chi2_nu      reduced chi-square with the measurement sd only (see module docstring)
+    """
+
+    model: str
+    param_names: list[str]
+    theta: np.ndarray
+    cov: np.ndarray
+    log_post: float
+    loglik: float
+    pointwise: np.ndarray
+    n_obs: int
+    k: int
+    k_model: int
+    rms_mm: float
+    chi2_nu: float
+    success: bool
+    n_starts: int = 1
+    message: str = ""
+
+    @property
+    def bic(self) -> float:
+        return float(self.k * np.log(self.n_obs) - 2.0 * self.loglik)
+
+    @property
+    def aic(self) -> float:
+        return float(2 * self.k - 2.0 * self.loglik)
+
+    @property
+    def values(self) -> dict[str, float]:
+        return dict(zip(self.param_names, map(float, self.theta)))
+
+    def to_json(self) -> dict:
+        sd = np.sqrt(np.clip(np.diag(self.cov), 0, None))
+        return {"model": self.model, "theta": self.values,
+                "sd": dict(zip(self.param_names, map(float, sd))),
+                "log_post": self.log_post, "loglik": self.loglik, "bic": self.bic,
+                "aic": self.aic, "n_obs": self.n_obs, "k": self.k, "rms_mm": self.rms_mm,
+                "chi2_nu": self.chi2_nu, "success": self.success, "message": self.message}
+
+
+@dataclass
+class ParamSummary:
+    """Posterior summary of one parameter (units of the parameter)."""
+
+    name: str
+    median: float
+    mean: float
+    sd: float
+    ci68: tuple[float, float]
+    ci90: tuple[float, float]
+    ci95: tuple[float, float]
+    map: float
+    tau: float = float("nan")     # integrated autocorrelation time (steps)
+    ess: float = float("nan")     # effective sample size
+    rhat: float = float("nan")    # rank-normalised split R-hat over independent ensembles
+
+    @classmethod
+    def from_draws(cls, name, draws, map_value, **kw) -> "ParamSummary":
+        q = np.quantile(draws, [0.025, 0.05, 0.16, 0.5, 0.84, 0.95, 0.975])
+        return cls(name, float(q[3]), float(np.mean(draws)), float(np.std(draws, ddof=1)),
+                   (float(q[2]), float(q[4])), (float(q[1]), float(q[5])),
+                   (float(q[0]), float(q[6])), float(map_value), **kw)
+
+
+@dataclass
+class FitResult:
+    """A full posterior fit (what ``fit.json`` holds)."""
+
+    model: str
+    param_names: list[str]
+    params: dict[str, ParamSummary]
+    map: MapResult
+    cov: np.ndarray
+    samples: np.ndarray                      # (n_draws, k) thinned posterior draws
+    diagnostics: dict
+    loo: dict
+    predictions: list[dict] = field(default_factory=list)   # per scan
+    derived: dict = field(default_factory=dict)
+    profile: dict = field(default_factory=dict)
+    priors: dict = field(default_factory=dict)
+    seed: int | None = None
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.diagnostics.get("converged", False))
+
+    def median(self, name: str) -> float:
+        return self.params[name].median
+
+    def draws(self, name: str) -> np.ndarray:
+        return self.samples[:, self.param_names.index(name)]
+
+    def to_json(self) -> dict:
+        return {
+            "schema": SCHEMA, "model": self.model, "converged": self.converged,
+            "param_names": self.param_names,
+            "params": {k: asdict(v) for k, v in self.params.items()},
+            "map": self.map.to_json(), "covariance": self.cov.tolist(),
+            "diagnostics": self.diagnostics,
+            "information": {"loglik_map": self.map.loglik, "bic": self.map.bic, "aic": self.map.aic,
+                            "n_obs": self.map.n_obs, "k": self.map.k, "rms_mm": self.map.rms_mm,
+                            "chi2_nu": self.map.chi2_nu, "loo": self.loo},
+            "derived": self.derived, "profile": self.profile, "priors": self.priors,
+            "seed": self.seed,
+            "samples": np.round(self.samples, 7).tolist(),
+            "predictions": self.predictions,
+        }
+
+    def save(self, path) -> Path:
+        return atomic_write_text(path, json.dumps(self.to_json(), indent=1, default=_default,
+                                                  allow_nan=True))
+
+
+def load_fit_json(path) -> dict:
+    """Read ``fit.json`` as a dict (checked schema); ``samples`` as an array."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"fit file {path} does not exist; run `calib fit` first") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path} is not a readable fit JSON file ({exc})") from None
+    if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith("calib.fit/"):
+        raise UserError(f"{path} is not a calib fit file (no 'schema: calib.fit/N'); "
+                        "make one with `calib fit`")
+    doc["samples"] = np.asarray(doc.get("samples", []), dtype=float)
+    return doc
+
+
+def _default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")

@@ -1,0 +1,414 @@
+"""MAP and MCMC fitting of a :class:`fit.likelihood.JointProblem`.
+
+``fit_map``: multi-start L-BFGS-B on z = log(theta) for positive parameters (so time
+constants spanning decades are searched evenly) and z = theta otherwise; gradients by
+forward differences evaluated in *one* vectorised model call; the covariance is the
+Laplace approximation (inverse Hessian of -log posterior by central differences, mapped
+back to theta by the Jacobian of exp).
+
+``fit_mcmc``: emcee 3 EnsembleSampler (vectorize=True) with the mixture
+[(DEMove, 0.8), (DESnookerMove, 0.2)] (ter Braak & Vrugt 2008; mixes 2-3x faster than the
+stretch move on these correlated posteriors). Several *independent* ensembles (default
+2), started from separate draws of the Laplace approximation around the MAP, so that the
+rank-normalised split R-hat (Vehtari et al. 2021) compares chains that never exchanged
+information (R-hat across walkers of one ensemble is not meaningful: the walkers are
+coupled by the moves). Stopping rule (emcee docs, Goodman & Weare 2010): every
+``check_every`` steps compute the integrated autocorrelation time tau of every parameter
+in every ensemble; stop when the chain is longer than ``tau_factor`` x max tau and every
+tau changed by less than ``tau_rtol`` since the last check. Burn-in 2 max tau is
+discarded and the chains thinned by tau/2. A run that hits ``max_steps`` or ``max_time_s``
+first, or ends with R-hat > ``rhat_max``, is reported as *not converged*
+(``FitResult.diagnostics["converged"] = False``; ``calib fit`` exits with code 3).
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import emcee
+import numpy as np
+from scipy.optimize import minimize
+from scipy.special import logsumexp
+from tqdm import tqdm
+
+from calib.errors import UserError
+from fit.likelihood import CORR_NAME, SIGMA_NAME, JointProblem, NoiseOptions
+from fit.result import FitResult, MapResult, ParamSummary
+
+EXIT_NOT_CONVERGED = 3
+
+
+# -- problem construction ---------------------------------------------------------
+def make_problem(model, data, noise: NoiseOptions | None = None, prior_overrides=None,
+                 extra_effects=()) -> JointProblem:
+    """Build the posterior of ``model`` on ``data`` (:class:`fit.data.FitData` or one ScanData).
+
+    ``model``: a model spec string ("pa+thermal"; a model per scan is built with
+    ``fit.model.build_model(spec, profile_of_that_scan)``), one Model object (shared by all
+    scans) or a list of models (one per scan).
+    """
+    scans = getattr(data, "scans", None) or [data]
+    if isinstance(model, str):
+        from fit.model import build_model
+        from patterns.profile import profile_from_dict
+
+        models = []
+        for sc in scans:
+            try:
+                prof = profile_from_dict(sc.manifest.printer)
+            except Exception as exc:  # a malformed printer block is the user's file
+                raise UserError(f"{sc.name}: the manifest's printer profile is unusable: {exc}") from None
+            models.append(build_model(model, prof, extra_effects=tuple(extra_effects)))
+        for sc, m in zip(scans, models):
+            if sc.ctx is None:
+                from fit.context import SimContext
+                sc.ctx = SimContext.build(sc.manifest, sc.samples)
+    elif isinstance(model, (list, tuple)):
+        models = list(model)
+    else:
+        models = [model] * len(scans)
+    return JointProblem(scans, models, noise or NoiseOptions(), prior_overrides)
+
+
+def model_label(problem: JointProblem, model=None) -> str:
+    if isinstance(model, str):
+        return model
+    m = problem.models[0]
+    return str(getattr(m, "spec", getattr(m, "name", type(m).__name__)))
+
+
+# -- transforms ---------------------------------------------------------------------
+class _Transform:
+    """theta <-> z: log for parameters with a positive lower bound."""
+
+    def __init__(self, problem: JointProblem):
+        self.log = np.array([p.positive for p in problem.priors])
+        lo, hi = problem.bounds.T
+        self.zlo = np.where(self.log, np.log(lo), lo)
+        self.zhi = np.where(self.log, np.log(hi), hi)
+
+    def to_theta(self, z):
+        z = np.asarray(z, dtype=float)
+        return np.where(self.log, np.exp(z), z)
+
+    def to_z(self, th):
+        th = np.asarray(th, dtype=float)
+        return np.where(self.log, np.log(np.where(self.log, th, 1.0)), th)
+
+
+def _logpost_z(problem, tr, z):
+    """log posterior density in z (includes the log-Jacobian of exp for log parameters)."""
+    th = tr.to_theta(np.atleast_2d(z))
+    lp, _ = problem.log_prob(th)
+    return lp + (np.atleast_2d(z) * tr.log).sum(axis=1)
+
+
+def _hessian_z(problem, tr, z0, h=1e-3):
+    """Central-difference Hessian of -log posterior in z, all points in one call."""
+    d = len(z0)
+    pts, keys = [z0], []
+    for i in range(d):
+        for j in range(i, d):
+            for si, sj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+                p = z0.copy()
+                p[i] += si * h
+                p[j] += sj * h
+                pts.append(p)
+                keys.append((i, j, si * sj))
+    f = -_logpost_z(problem, tr, np.array(pts))
+    H = np.zeros((d, d))
+    for (i, j, sgn), fv in zip(keys, f[1:]):
+        H[i, j] += sgn * fv / (4 * h * h)
+    H = H + np.triu(H, 1).T
+    return H
+
+
+def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
+            prior_overrides=None, extra_effects=(), x0=None, maxiter: int = 400) -> MapResult:
+    """Maximum a posteriori fit. ``fit_map(problem)`` or ``fit_map(model, data)`` (see
+    :func:`make_problem`). Starts: ``x0`` (or the model defaults) and ``n_starts - 1`` prior
+    draws; the best optimum wins."""
+    problem = model if isinstance(model, JointProblem) else make_problem(
+        model, data, noise, prior_overrides, extra_effects)
+    tr = _Transform(problem)
+    rng = np.random.default_rng(seed)
+    starts = [problem.default_theta() if x0 is None else np.asarray(x0, dtype=float)]
+    lo, hi = problem.bounds.T
+    for _ in range(max(0, n_starts - 1)):
+        th = np.array([p.sample(rng, 1)[0] for p in problem.priors])
+        # noise parameters start at a typical scale; prior draws of those are wasteful
+        for j, n in enumerate(problem.param_names):
+            if n.startswith(SIGMA_NAME) or n.startswith(CORR_NAME):
+                th[j] = starts[0][j]
+        starts.append(np.clip(th, lo, hi))
+    # a small step inside the bounds keeps finite differences legal
+    zlo, zhi = tr.zlo + 1e-9, tr.zhi - 1e-9
+    d = problem.ndim
+
+    def fun_grad(z):
+        h = 1e-6 * np.maximum(1.0, np.abs(z))
+        pts = np.vstack([z, z + np.diag(h)])
+        pts = np.clip(pts, zlo - 1e-9, zhi + 1e-9)
+        f = -_logpost_z(problem, tr, pts)
+        if not np.isfinite(f[0]):
+            return 1e300, np.zeros(d)
+        g = np.where(np.isfinite(f[1:]), (f[1:] - f[0]) / h, 0.0)
+        return float(f[0]), g
+
+    best, n_ok = None, 0
+    for s in starts:
+        z0 = np.clip(tr.to_z(np.clip(s, lo, hi)), zlo, zhi)
+        f0, _ = fun_grad(z0)
+        if not np.isfinite(f0) or f0 >= 1e300:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = minimize(fun_grad, z0, jac=True, method="L-BFGS-B",
+                           bounds=list(zip(zlo, zhi)), options={"maxiter": maxiter})
+        n_ok += 1
+        if best is None or res.fun < best.fun:
+            best = res
+    if best is None:
+        raise UserError("the model cannot reproduce these widths at any starting point "
+                        "(log-likelihood is -inf everywhere); check the manifest and the model")
+    z = best.x
+    theta = tr.to_theta(z)
+    try:
+        Hz = _hessian_z(problem, tr, z, h=1e-3)
+        cov_z = np.linalg.inv(Hz)
+        if not np.all(np.isfinite(cov_z)) or np.any(np.linalg.eigvalsh(0.5 * (cov_z + cov_z.T)) <= 0):
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:
+        cov_z = np.diag(np.full(d, 1e-4))
+    J = np.where(tr.log, theta, 1.0)
+    cov = cov_z * np.outer(J, J)
+    return _map_result(problem, theta, cov, best, n_ok, model_label(problem, model))
+
+
+def _map_result(problem, theta, cov, res, n_ok, label) -> MapResult:
+    lp, ll = problem.log_prob(theta)
+    resid = np.concatenate(problem.residuals(theta))
+    sd = np.concatenate([sc.sd_mm for sc in problem.scans])
+    k_model = sum(1 for n in problem.param_names
+                  if not (n.startswith(SIGMA_NAME) or n.startswith(CORR_NAME)))
+    n = problem.n_obs
+    return MapResult(model=label, param_names=list(problem.param_names), theta=theta, cov=cov,
+                     log_post=float(lp[0]), loglik=float(ll[0].sum()), pointwise=ll[0],
+                     n_obs=n, k=problem.ndim, k_model=k_model,
+                     rms_mm=float(np.sqrt(np.mean(resid ** 2))),
+                     chi2_nu=float(np.sum((resid / sd) ** 2) / max(1, n - k_model)),
+                     success=bool(getattr(res, "success", True)), n_starts=n_ok,
+                     message=str(getattr(res, "message", "")))
+
+
+# -- MCMC -----------------------------------------------------------------------------
+def _initial_ball(problem, tr, map_res, n, rng):
+    """Walkers from the Laplace approximation in z shrunk by 0.3 (inside the support)."""
+    z0 = tr.to_z(map_res.theta)
+    J = np.where(tr.log, map_res.theta, 1.0)
+    cov_z = map_res.cov / np.outer(J, J)
+    try:
+        L = np.linalg.cholesky(0.5 * (cov_z + cov_z.T))
+    except np.linalg.LinAlgError:
+        L = np.diag(np.full(len(z0), 1e-3))
+    out = []
+    tries = 0
+    while len(out) < n:
+        tries += 1
+        scale = 0.3 if tries < 50 * n else 0.01
+        z = z0 + scale * L @ rng.standard_normal(len(z0))
+        th = tr.to_theta(z)
+        if np.isfinite(problem.log_prob(th)[0][0]):
+            out.append(th)
+        elif tries > 200 * n:
+            out.append(map_res.theta * (1 + 1e-6 * rng.standard_normal(len(z0))))
+    return np.array(out)
+
+
+def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers: int | None = None,
+             n_ensembles: int = 2, max_steps: int = 20000, min_steps: int = 200,
+             check_every: int = 100, tau_factor: float = 50.0, tau_rtol: float = 0.01,
+             rhat_max: float = 1.01, max_time_s: float | None = None, seed: int = 0,
+             progress: bool = True, n_loo_draws: int = 400, noise=None, prior_overrides=None,
+             extra_effects=(), n_starts: int = 4) -> FitResult:
+    """Full posterior of ``model`` on ``data`` (or of a JointProblem), see module docstring."""
+    problem = model if isinstance(model, JointProblem) else make_problem(
+        model, data, noise, prior_overrides, extra_effects)
+    label = model_label(problem, model)
+    t0 = time.perf_counter()
+    if map_result is None:
+        map_result = fit_map(problem, n_starts=n_starts, seed=seed)
+    t_map = time.perf_counter() - t0
+    d = problem.ndim
+    nw = n_walkers or max(16, 4 * d)
+    nw += nw % 2
+    tr = _Transform(problem)
+    rng = np.random.default_rng(seed)
+
+    def logp(th):
+        return problem.log_prob(th)[0]
+
+    samplers, gens = [], []
+    for e in range(n_ensembles):
+        s = emcee.EnsembleSampler(nw, d, logp, vectorize=True,
+                                  moves=[(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)])
+        s._random = np.random.mtrand.RandomState(int(rng.integers(2 ** 31)))
+        p0 = _initial_ball(problem, tr, map_result, nw, rng)
+        samplers.append(s)
+        gens.append(s.sample(p0, iterations=max_steps, store=True))
+    tau_prev = None
+    tau = np.full(d, np.nan)
+    stop_reason = "max_steps"
+    steps = 0
+    bar = tqdm(total=max_steps, desc=f"fit {label}", unit="step", disable=not progress,
+               leave=False, mininterval=0.5)
+    history = []
+    try:
+        for steps in range(1, max_steps + 1):
+            for g in gens:
+                next(g)
+            bar.update(1)
+            if steps % check_every == 0:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    tau_e = np.array([s.get_autocorr_time(tol=0) for s in samplers])
+                tau = np.nanmax(tau_e, axis=0)
+                history.append([steps, float(np.max(tau))])
+                bar.set_postfix(tau=f"{np.max(tau):.1f}", need=int(tau_factor * np.max(tau)))
+                stable = tau_prev is not None and np.all(np.abs(tau - tau_prev) / tau < tau_rtol)
+                if steps >= min_steps and np.all(np.isfinite(tau)) and \
+                        steps > tau_factor * np.max(tau) and stable:
+                    stop_reason = "tau"
+                    break
+                tau_prev = tau
+                if max_time_s is not None and time.perf_counter() - t0 > max_time_s:
+                    stop_reason = "max_time"
+                    break
+    finally:
+        bar.close()
+        for g in gens:
+            g.close()
+    if not np.all(np.isfinite(tau)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tau = np.nanmax(np.array([s.get_autocorr_time(tol=0) for s in samplers]), axis=0)
+    tau = np.where(np.isfinite(tau), tau, steps / 2.0)
+    burn = int(min(2 * np.max(tau), steps // 2))
+    thin = max(1, int(0.5 * np.min(tau)))
+    chains = [s.get_chain(discard=burn, thin=thin) for s in samplers]   # (n, nw, d) each
+    n_keep = min(c.shape[0] for c in chains)
+    chains = [c[:n_keep] for c in chains]
+    flat = np.concatenate([c.reshape(-1, d) for c in chains])
+    rhat = _split_rhat(chains)
+    n_post = steps - burn
+    ess = n_ensembles * nw * n_post / tau
+    acc = float(np.mean([np.mean(s.acceptance_fraction) for s in samplers]))
+    converged = stop_reason == "tau" and bool(np.all(rhat < rhat_max))
+    diag = {
+        "converged": converged, "stop_reason": stop_reason, "n_steps": steps,
+        "n_walkers": nw, "n_ensembles": n_ensembles, "burn_in": burn, "thin": thin,
+        "tau_steps": dict(zip(problem.param_names, map(float, tau))),
+        "ess": dict(zip(problem.param_names, map(float, ess))),
+        "rhat": dict(zip(problem.param_names, map(float, rhat))),
+        "acceptance_fraction": acc, "tau_factor": tau_factor, "tau_rtol": tau_rtol,
+        "rhat_max": rhat_max, "max_steps": max_steps,
+        "wall_time_s": time.perf_counter() - t0, "map_time_s": t_map,
+        "tau_history": history,
+    }
+    if not converged:
+        why = {"max_steps": f"hit the cap of {max_steps} steps before the chain was "
+                            f"{tau_factor:g} tau long with a stable tau",
+               "max_time": f"hit the time cap of {max_time_s} s"}.get(stop_reason, "")
+        if stop_reason == "tau":
+            why = f"R-hat {np.max(rhat):.3f} > {rhat_max}: the independent ensembles disagree"
+        diag["warning"] = "NOT CONVERGED: " + why
+    params = {n: ParamSummary.from_draws(n, flat[:, j], map_result.theta[j], tau=float(tau[j]),
+                                         ess=float(ess[j]), rhat=float(rhat[j]))
+              for j, n in enumerate(problem.param_names)}
+    cov = np.cov(flat.T).reshape(d, d)
+    loo, preds = _loo_and_predictions(problem, flat, map_result, n_loo_draws, rng)
+    return FitResult(model=label, param_names=list(problem.param_names), params=params,
+                     map=map_result, cov=cov, samples=_subsample(flat, 4000, rng),
+                     diagnostics=diag, loo=loo, predictions=preds,
+                     priors={n: p.to_json() for n, p in zip(problem.param_names, problem.priors)},
+                     profile=dict(problem.scans[0].manifest.printer) if problem.scans[0].manifest else {},
+                     seed=seed)
+
+
+def _subsample(flat, n, rng):
+    if len(flat) <= n:
+        return flat
+    return flat[np.sort(rng.choice(len(flat), n, replace=False))]
+
+
+def _split_rhat(chains) -> np.ndarray:
+    """Rank-normalised split R-hat: each ensemble's post-burn chain is split in two halves in
+    time; each half (all its walkers) is one chain."""
+    from arviz_stats.base import array_stats
+
+    d = chains[0].shape[2]
+    half = chains[0].shape[0] // 2
+    if half < 2:
+        return np.full(d, np.inf)
+    parts = []
+    for c in chains:
+        parts.append(c[:half].reshape(-1, d))
+        parts.append(c[half:2 * half].reshape(-1, d))
+    arr = np.stack(parts)             # (n_chains, n_draws, d)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = np.array([array_stats.rhat(arr[:, :, j], chain_axis=0, draw_axis=1) for j in range(d)],
+                     dtype=float)
+    return np.where(np.isfinite(r), r, np.inf)
+
+
+def psis_loo(ll: np.ndarray) -> dict:
+    """PSIS-LOO (Vehtari, Gelman & Gabry 2017) from pointwise log-likelihoods (n_draws, n_obs)
+    of (nearly) independent posterior draws: elpd_loo, its standard error, p_loo, Pareto k."""
+    from arviz_stats.base import array_stats
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        # arviz_stats negates its input: it takes the log-likelihood itself (weights ~ 1/p)
+        lw, k = array_stats.psislw(ll.T, r_eff=1.0, axis=-1)
+    lw = lw - logsumexp(lw, axis=1, keepdims=True)
+    elpd_i = logsumexp(lw + ll.T, axis=1)
+    lpd_i = logsumexp(ll.T, axis=1) - math.log(ll.shape[0])
+    n = ll.shape[1]
+    k = np.asarray(k, dtype=float)
+    return {"elpd_loo": float(elpd_i.sum()), "se": float(math.sqrt(n * np.var(elpd_i))),
+            "p_loo": float((lpd_i - elpd_i).sum()), "n_draws": int(ll.shape[0]),
+            "pareto_k_max": float(np.nanmax(k)), "n_pareto_k_gt_0.7": int(np.sum(k > 0.7)),
+            "elpd_i": elpd_i.tolist(), "pareto_k": np.round(k, 4).tolist()}
+
+
+def _loo_and_predictions(problem, flat, map_res, n_draws, rng):
+    idx = rng.choice(len(flat), min(n_draws, len(flat)), replace=False)
+    draws = flat[idx]
+    lls, preds = [], [[] for _ in problem.scans]
+    for i in range(0, len(draws), 64):
+        chunk = draws[i:i + 64]
+        lp, ll = problem.log_prob(chunk)
+        lls.append(ll)
+        for k in range(len(problem.scans)):
+            preds[k].append(problem.predict(chunk, k))
+    ll = np.concatenate(lls)
+    ll = ll[np.all(np.isfinite(ll), axis=1)]
+    loo = psis_loo(ll) if len(ll) >= 20 else {"elpd_loo": float("nan"), "warning": "too few draws"}
+    out = []
+    for k, sc in enumerate(problem.scans):
+        P = np.concatenate(preds[k])
+        q = np.quantile(P, [0.16, 0.5, 0.84], axis=0)
+        pm = problem.predict(map_res.theta, k)[0]
+        t = sc.table
+        out.append({"scan": sc.name, **sc.source,
+                    "track": t.track.tolist(), "s_mm": np.round(t.s_mm, 4).tolist(),
+                    "width_mm": np.round(t.width_mm, 5).tolist(),
+                    "width_sd_mm": np.round(t.width_sd_mm, 5).tolist(),
+                    "valid": t.valid.astype(int).tolist(),
+                    "pred_map_mm": np.round(pm, 5).tolist(),
+                    "pred_median_mm": np.round(q[1], 5).tolist(),
+                    "pred_lo68_mm": np.round(q[0], 5).tolist(),
+                    "pred_hi68_mm": np.round(q[2], 5).tolist()})
+    return loo, out

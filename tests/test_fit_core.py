@@ -1,0 +1,254 @@
+"""Likelihood, priors, MAP/MCMC, joint fits and derived values on a tiny analytic model.
+
+The toy model is a first-order step response (the linear PA law, seed 001): after a flow
+step at the start of each track the width relaxes as
+    w(t) = g * (w_lo + (w_hi - w_lo) * (1 - exp(-t / tau)))
+with the same predict/params interface as fit.model.Model.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal, t as student_t
+
+from calib.errors import UserError
+from fit.data import ScanData
+from fit.derived import derived_values, firmware_commands, kalico_match, ve_s_from_tau
+from fit.likelihood import JointProblem, NoiseOptions, ar1_phi, pointwise_loglik
+from fit.priors import Prior, apply_overrides, load_priors_file, prior_from_param
+from fit.sampler import fit_map, fit_mcmc
+from measure.table import WidthTable
+from patterns.manifest import Samples
+
+
+@dataclass(frozen=True)
+class ToyParam:
+    name: str
+    unit: str
+    default: float
+    lower: float
+    upper: float
+    prior: object = "uniform"
+
+
+@dataclass
+class ToyCtx:
+    t_s: np.ndarray
+    w_lo_mm: np.ndarray
+    w_hi_mm: np.ndarray
+
+
+class ToyModel:
+    spec = "toy"
+
+    def __init__(self, with_gain=True):
+        self.params = [ToyParam("pa.tau_s", "s", 0.2, 0.01, 3.0, "loguniform")]
+        if with_gain:
+            self.params.append(ToyParam("flow_gain.gain", "1", 1.0, 0.8, 1.2))
+        self.param_names = [p.name for p in self.params]
+
+    def default_theta(self):
+        return np.array([p.default for p in self.params])
+
+    def predict(self, ctx, theta):
+        th = np.atleast_2d(theta)
+        tau = th[:, :1]
+        g = th[:, 1:2] if th.shape[1] > 1 else 1.0
+        return g * (ctx.w_lo_mm + (ctx.w_hi_mm - ctx.w_lo_mm) * (1 - np.exp(-ctx.t_s / tau)))
+
+
+def make_scan(name="scan", tau=0.3, gain=1.0, sd=0.005, sig=0.015, ell=0.6, seed=0,
+              n_tracks=6, n_per=120, v_mm_s=20.0, model=None, outliers=0):
+    """Synthetic widths drawn *exactly* from the likelihood's noise model."""
+    rng = np.random.default_rng(seed)
+    model = model or ToyModel()
+    s1 = 0.25 * np.arange(n_per)
+    track = np.repeat(np.arange(n_tracks), n_per)
+    s = np.tile(s1, n_tracks)
+    t = s / v_mm_s
+    lo = np.where(track % 2 == 0, 0.35, 0.6)
+    hi = np.where(track % 2 == 0, 0.6, 0.35)
+    ctx = ToyCtx(t, lo, hi)
+    th = np.array([tau, gain])[: len(model.param_names)]
+    w_true = model.predict(ctx, th)[0]
+    phi = math.exp(-0.25 / ell)
+    tot = math.sqrt(sd ** 2 + sig ** 2)
+    e = np.empty(len(s))
+    for i in range(len(s)):
+        if s[i] == 0:
+            e[i] = rng.standard_normal()
+        else:
+            e[i] = phi * e[i - 1] + math.sqrt(1 - phi ** 2) * rng.standard_normal()
+    y = w_true + tot * e
+    if outliers:
+        k = rng.choice(len(y), outliers, replace=False)
+        y[k] += 0.3
+    n = len(s)
+    table = WidthTable(track=track, s_mm=s, x_mm=s, y_mm=track * 3.0, t_s=t, width_mm=y,
+                       width_sd_mm=np.full(n, sd), valid=np.ones(n, bool))
+    samples = Samples(track=track, s_mm=s, x_mm=s, y_mm=track * 3.0, t_s=t, nx=np.zeros(n),
+                      ny=np.ones(n), width_nominal_mm=hi, height_mm=np.full(n, 0.2))
+    from fit.data import scan_from_table  # noqa: F401  (the real path needs a manifest)
+    gap = np.where(s == 0, np.inf, 0.25)
+    return ScanData(name=name, manifest=None, table=table, samples=samples,
+                    order=np.arange(n), y_mm=y, sd_mm=np.full(n, sd), gap_mm=gap, ctx=ctx)
+
+
+# -- likelihood ------------------------------------------------------------------------
+def test_ar1_loglik_equals_exact_multivariate_normal():
+    """Sum of the pointwise terms is the exact stationary AR(1) Gaussian density."""
+    rng = np.random.default_rng(1)
+    n, sd, sig, ell, ds = 40, 0.01, 0.02, 0.7, 0.25
+    r = rng.normal(0, 0.02, n)
+    rho = math.exp(-ds / ell)
+    s2 = sd ** 2 + sig ** 2
+    C = s2 * rho ** np.abs(np.subtract.outer(np.arange(n), np.arange(n)))
+    exact = multivariate_normal(np.zeros(n), C).logpdf(r)
+    gap = np.r_[np.inf, np.full(n - 1, ds)]
+    ll = pointwise_loglik(r[None], np.full(n, sd), sig, ar1_phi(gap, np.array([[ell]])))
+    assert ll.sum() == pytest.approx(exact, rel=1e-10)
+
+
+def test_ar1_gap_uses_rho_to_the_power_of_the_gap():
+    """Two samples 1 mm apart: correlation exp(-1/ell), as an OU process."""
+    ell, sd = 0.5, 0.01
+    r = np.array([0.012, -0.004])
+    rho = math.exp(-1.0 / ell)
+    exact = multivariate_normal(np.zeros(2), sd ** 2 * np.array([[1, rho], [rho, 1]])).logpdf(r)
+    ll = pointwise_loglik(r[None], np.full(2, sd), 0.0, ar1_phi(np.array([np.inf, 1.0]), [[ell]]))
+    assert ll.sum() == pytest.approx(exact, rel=1e-10)
+
+
+def test_student_t_pointwise_matches_scipy():
+    r = np.array([0.01, -0.3, 0.002])
+    ll = pointwise_loglik(r[None], np.full(3, 0.02), 0.0, None, student_nu=4)
+    assert np.allclose(ll[0], student_t(4, scale=0.02).logpdf(r))
+
+
+# -- priors ------------------------------------------------------------------------------
+def test_loguniform_prior_density_normalised_and_truncated():
+    p = Prior("loguniform", 0.01, 1.0)
+    x = np.geomspace(0.01, 1.0, 20001)
+    assert np.trapezoid(np.exp(p.log_prob(x)), x) == pytest.approx(1.0, rel=1e-3)
+    assert p.log_prob(1.5) == -np.inf
+
+
+def test_prior_from_param_tuple_and_overrides_file(tmp_path):
+    pr = prior_from_param(ToyParam("a", "s", 0.5, 0.0, 1.0, ("normal", 0.4, 0.1)))
+    assert (pr.kind, pr.mu, pr.sd) == ("normal", 0.4, 0.1)
+    f = tmp_path / "p.toml"
+    f.write_text('["pa.tau_s"]\nprior = "normal"\nmu = 0.3\nsd = 0.01\n')
+    out = apply_overrides({"pa.tau_s": Prior("loguniform", 0.01, 3)}, load_priors_file(f))
+    assert out["pa.tau_s"].kind == "normal" and out["pa.tau_s"].mu == 0.3
+    f.write_text('["pa.nope"]\nprior = "uniform"\n')
+    with pytest.raises(UserError, match="does not have"):
+        apply_overrides({"pa.tau_s": Prior("loguniform", 0.01, 3)}, load_priors_file(f))
+
+
+def test_strong_prior_override_pulls_the_posterior():
+    sc = make_scan(tau=0.3, seed=3)
+    pb = JointProblem([sc], [ToyModel()], prior_overrides={"pa.tau_s": {"prior": "normal", "mu": 0.5,
+                                                                         "sd": 0.001}})
+    m = fit_map(pb)
+    assert m.values["pa.tau_s"] == pytest.approx(0.5, abs=0.005)
+
+
+# -- MAP / MCMC --------------------------------------------------------------------------
+def test_map_recovers_tau_and_gain_and_reports_information():
+    sc = make_scan(tau=0.3, gain=1.05, seed=2)
+    m = fit_map(ToyModel(), sc)
+    assert m.values["pa.tau_s"] == pytest.approx(0.3, rel=0.05)
+    assert m.values["flow_gain.gain"] == pytest.approx(1.05, rel=0.01)
+    n = sc.n_valid
+    assert m.bic == pytest.approx(m.k * math.log(n) - 2 * m.loglik)
+    assert m.pointwise.shape == (n,) and m.pointwise.sum() == pytest.approx(m.loglik)
+    # widths scatter ~0.016 mm around the truth; the residual RMS must show it
+    assert 0.010 < m.rms_mm < 0.025
+    assert m.k == 4 and m.k_model == 2
+
+
+def test_mcmc_recovers_tau_with_honest_diagnostics():
+    sc = make_scan(tau=0.3, gain=1.0, seed=6)
+    r = fit_mcmc(ToyModel(), sc, seed=1, progress=False, max_steps=6000)
+    assert r.converged, r.diagnostics.get("warning")
+    p = r.params["pa.tau_s"]
+    assert p.ci95[0] < 0.3 < p.ci95[1]
+    assert p.ci95[1] - p.ci95[0] < 0.1
+    assert all(v < 1.01 for v in r.diagnostics["rhat"].values())
+    assert 0.1 < r.diagnostics["acceptance_fraction"] < 0.9
+    assert r.diagnostics["n_steps"] >= 50 * max(r.diagnostics["tau_steps"].values())
+    assert r.loo["pareto_k_max"] < 0.7
+    # p_loo ~ number of effectively free parameters (4 here)
+    assert 1.5 < r.loo["p_loo"] < 10
+
+
+def test_interval_coverage_small_seed_set():
+    """90 % intervals contain the truth in most of 12 datasets (binomial: 8..12 expected)."""
+    hits = 0
+    for seed in range(12):
+        sc = make_scan(tau=0.25, gain=0.95, seed=100 + seed, n_tracks=4, n_per=100)
+        # short chains (30 tau, no tau-stability wait) keep the test fast; intervals are
+        # still from >= 30 tau x 32 walkers, i.e. hundreds of independent draws
+        r = fit_mcmc(ToyModel(), sc, seed=seed, progress=False, max_steps=1500, tau_factor=30,
+                     tau_rtol=1.0, n_loo_draws=30)
+        lo, hi = r.params["pa.tau_s"].ci90
+        hits += lo < 0.25 < hi
+    assert 8 <= hits <= 12
+
+
+def test_non_convergence_is_reported():
+    sc = make_scan(seed=7)
+    r = fit_mcmc(ToyModel(), sc, seed=0, progress=False, max_steps=60, check_every=20,
+                 n_loo_draws=50)
+    assert not r.converged
+    assert r.diagnostics["stop_reason"] == "max_steps"
+    assert "NOT CONVERGED" in r.diagnostics["warning"]
+
+
+def test_joint_fit_shares_tau_and_keeps_per_scan_gains():
+    a = make_scan("a", tau=0.4, gain=0.95, seed=11, n_tracks=4)
+    b = make_scan("b", tau=0.4, gain=1.08, seed=12, n_tracks=4)
+    pb = JointProblem([a, b], [ToyModel(), ToyModel()])
+    assert pb.param_names[:3] == ["pa.tau_s", "flow_gain.gain@a", "flow_gain.gain@b"]
+    m = fit_map(pb)
+    v = m.values
+    assert v["pa.tau_s"] == pytest.approx(0.4, rel=0.06)
+    assert v["flow_gain.gain@a"] == pytest.approx(0.95, rel=0.01)
+    assert v["flow_gain.gain@b"] == pytest.approx(1.08, rel=0.01)
+    # a joint fit is more precise than either scan alone
+    sa = math.sqrt(fit_map(ToyModel(), a).cov[0, 0])
+    assert math.sqrt(m.cov[0, 0]) < sa
+
+
+def test_student_t_resists_outliers():
+    sc = make_scan(tau=0.3, seed=21, outliers=25, sig=0.005)
+    g = fit_map(JointProblem([sc], [ToyModel()], NoiseOptions(ar1=False)))
+    t = fit_map(JointProblem([sc], [ToyModel()], NoiseOptions(ar1=False, student_nu=3)))
+    assert abs(t.values["flow_gain.gain"] - 1) < abs(g.values["flow_gain.gain"] - 1)
+    assert t.values["pa.tau_s"] == pytest.approx(0.3, rel=0.05)
+
+
+# -- derived -------------------------------------------------------------------------------
+def test_kisslicer_ve_seed000_example():
+    """Seed 000: D=2.85, L=150, l=0.6, d=0.4 mm, tau 0.594 s -> VE 0.65 us."""
+    ve = ve_s_from_tau(0.594, 2.85, 150, 0.6, 0.4)
+    assert ve * 1e6 == pytest.approx(0.65, abs=0.005)
+    d = derived_values(["pa.tau_s"], np.full((10, 1), 0.594),
+                       {"filament_diameter_mm": 2.85, "bowden_length_mm": 150,
+                        "nozzle_land_length_mm": 0.6, "nozzle_diameter_mm": 0.4})
+    assert d["kisslicer_ve_us"]["median"] == pytest.approx(0.65, abs=0.005)
+    assert d["firmware"]["marlin"] == "M900 K0.5940"
+    assert d["firmware"]["rrf"] == "M572 D0 S0.5940"
+    assert d["firmware"]["klipper"] == "SET_PRESSURE_ADVANCE ADVANCE=0.5940"
+
+
+def test_kalico_match_recovers_its_own_curve():
+    """A curve that *is* Kalico tanh (REFERENCE example LA=0.017, off=0.12, v_lin=1) is matched."""
+    fit = kalico_match(lambda v: 0.017 * v + 0.12 * np.tanh(v / 1.0), 20.0, "tanh", n=200)
+    assert fit["pressure_advance_s"] == pytest.approx(0.017, rel=0.02)
+    assert fit["offset_mm"] == pytest.approx(0.12, rel=0.05)
+    assert fit["rms_mm"] < 1e-4
+    assert firmware_commands(0.04)["klipper_config"].endswith("pressure_advance: 0.0400")
