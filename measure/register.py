@@ -128,29 +128,56 @@ def _area(p):
 def detect_markers(gray) -> tuple[list[int], list[np.ndarray]]:
     """ArUco DICT_4X4_50 markers in a gray image: (ids, corners (4, 2) px each).
 
-    Dark plastic on a light plate gives inverted markers; ``detectInvertedMarker`` misses
-    them when the printed quiet frame is present, so the negative image is searched as
-    well. Corners are refined with the AprilTag method, whose output is offset by
-    (+0.5, +0.5) px from OpenCV's pixel-centre convention (shared/REFERENCE.md); we
+    Dark plastic on a light plate gives inverted markers; ``detectInvertedMarker`` finds
+    them with corners off by up to 2 px when the printed quiet frame is present, so the
+    negative image is searched instead. Big images are searched at <= 1600 px and each marker is then re-detected in a
+    full-resolution crop with AprilTag corner refinement (0.05 px, shared/REFERENCE.md),
+    whose output is offset by (+0.5, +0.5) px from OpenCV's pixel-centre convention; we
     remove that offset.
     """
     g8 = _to_u8(gray)
     d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
-    p = cv2.aruco.DetectorParameters()
-    p.detectInvertedMarker = True
-    p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
-    det = cv2.aruco.ArucoDetector(d, p)
+    fast = cv2.aruco.DetectorParameters()
+    fine = cv2.aruco.DetectorParameters()
+    fine.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
+    k = max(1.0, max(g8.shape) / 1600.0)
+    small = g8 if k == 1.0 else cv2.resize(g8, (round(g8.shape[1] / k), round(g8.shape[0] / k)),
+                                           interpolation=cv2.INTER_AREA)
     found: dict[int, np.ndarray] = {}
-    for img in (g8, 255 - g8):
-        corners, ids, _ = det.detectMarkers(img)
+    for neg in (False, True):
+        img = 255 - small if neg else small
+        corners, ids, _ = cv2.aruco.ArucoDetector(d, fast).detectMarkers(img)
         if ids is None:
             continue
         for i, c in zip(ids.ravel(), corners):
-            found.setdefault(int(i), c.reshape(4, 2).astype(float) - APRILTAG_OFFSET_PX)
+            if int(i) in found:
+                continue
+            c = c.reshape(4, 2).astype(float) * k
+            refined = _refine_in_crop(g8, c, int(i), neg, cv2.aruco.ArucoDetector(d, fine))
+            found[int(i)] = refined if refined is not None else c
         if len(found) >= 4:
             break
     ids = sorted(found)
     return ids, [found[i] for i in ids]
+
+
+def _refine_in_crop(g8, approx, marker_id, negative, detector):
+    """Re-detect marker ``marker_id`` in a full-resolution crop around ``approx`` corners."""
+    size = np.ptp(approx, axis=0).max()
+    lo = np.maximum(np.floor(approx.min(axis=0) - 0.5 * size), 0).astype(int)
+    hi = np.minimum(np.ceil(approx.max(axis=0) + 0.5 * size), [g8.shape[1], g8.shape[0]]).astype(int)
+    crop = g8[lo[1]:hi[1], lo[0]:hi[0]]
+    if negative:
+        crop = 255 - crop
+    corners, ids, _ = detector.detectMarkers(np.ascontiguousarray(crop))
+    if ids is None:
+        return None
+    for i, c in zip(ids.ravel(), corners):
+        if int(i) == marker_id:
+            c = c.reshape(4, 2).astype(float) - APRILTAG_OFFSET_PX + lo
+            if np.abs(c - approx).max() < 0.1 * size + 3:
+                return c
+    return None
 
 
 def _to_u8(gray):
@@ -243,27 +270,38 @@ def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 4000):
     return np.concatenate(pts), np.concatenate(wid)
 
 
-def _track_image(gray, polarity, sigma_px, bg_sigma_px):
+class _TrackImage:
     """Local-contrast image, polarity folded in (tracks positive), blurred by sigma_px.
 
-    Returns (image, downscale factor); coordinates in it are px / factor.
+    D = polarity * (G_sigma * I - mean) / sd, with mean and sd the local statistics over
+    ``bg_sigma_px``; those are smooth, so they are computed and sampled on a reduced copy.
     """
-    factor = max(1, int(sigma_px // 2))
-    g = gray if factor == 1 else cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor),
-                                            interpolation=cv2.INTER_AREA)
-    sb = max(bg_sigma_px / factor, 2.0)
-    mean = cv2.GaussianBlur(g, (0, 0), sb)
-    var = cv2.GaussianBlur((g - mean) ** 2, (0, 0), sb)
-    d = polarity * (g - mean) / np.sqrt(var + 1e-6)
-    s = sigma_px / factor
-    if s > 0.3:
-        d = cv2.GaussianBlur(d, (0, 0), s)
-    return d.astype(np.float32), factor
+
+    def __init__(self, gray, polarity, sigma_px, bg_sigma_px):
+        self.fi = max(1, int(sigma_px // 2))
+        self.fb = max(1, int(bg_sigma_px // 4))
+        self.img = cv2.GaussianBlur(_reduce(gray, self.fi), (0, 0), max(sigma_px / self.fi, 0.3))
+        g = _reduce(gray, self.fb)
+        sb = max(bg_sigma_px / self.fb, 2.0)
+        self.mean = cv2.GaussianBlur(g, (0, 0), sb)
+        self.sd = np.sqrt(cv2.GaussianBlur((g - self.mean) ** 2, (0, 0), sb) + 1e-6)
+        self.polarity = polarity
+
+    def __call__(self, uv):
+        a = _sample(self.img, uv, self.fi)
+        return self.polarity * (a - _sample(self.mean, uv, self.fb)) / _sample(self.sd, uv, self.fb, cval=1.0)
 
 
-def _sample(img, uv, factor=1, order=1):
-    coords = np.array([uv[:, 1] / factor, uv[:, 0] / factor])
-    return ndimage.map_coordinates(img, coords, order=order, mode="constant", cval=0.0)
+def _reduce(gray, factor):
+    if factor == 1:
+        return gray
+    return cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor), interpolation=cv2.INTER_AREA)
+
+
+def _sample(img, uv, factor=1, order=1, cval=0.0):
+    # pixel centres: full-res u maps to (u + 0.5) / f - 0.5 in an f-times reduced image
+    coords = np.array([(uv[:, 1] + 0.5) / factor - 0.5, (uv[:, 0] + 0.5) / factor - 0.5])
+    return ndimage.map_coordinates(img, coords, order=order, mode="constant", cval=cval)
 
 
 def estimate_polarity(gray, project, pts, wid, px_per_mm) -> tuple[float, float]:
@@ -405,26 +443,39 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
         ladder_mm = [0.5, 0.25, max(0.1, w_med / 3)]
     sig_c = 0.3                       # px, AprilTag corner noise
     sig_h = 0.01 * W                  # px, a click on a phone photo
+
+    def prior(xx):
+        return [np.array([xx[8] / 0.2, xx[9] / 0.1])] if mp.with_distortion else []  # real lenses: |k1| < ~0.2, |k2| < ~0.1
+
+    if corners is not None and mp.with_distortion:
+        # Lens distortion from the corners alone first (k1 only: corners sit at similar
+        # radii, where k1 and k2 trade off), to bring the layout within the capture range
+        # of the finest track image.
+        def corner_resid(x9):
+            xx = np.concatenate([x9, [0.0]])
+            return np.concatenate([((mp.project(xx, corners[0]) - corners[1]) / sig_c).ravel()] + prior(xx))
+        x = np.concatenate([optimize.least_squares(corner_resid, x[:9], x_scale="jac", diff_step=1e-6,
+                                                   max_nfev=100).x, [0.0]])
     for sig_mm in ladder_mm:
         sig_px = max(0.7, sig_mm * scale)
-        D, fac = _track_image(gray, polarity, sig_px, bg_sigma_px=max(3 * sig_px, 2.5 * w_med * scale))
-        n = len(lay_pts)
-        # Each layout point counts as ~1/20 of a corner so that a mis-registered marker
-        # cannot be overruled by a long track, yet tracks set what corners leave open.
-        wt = np.sqrt(max(1.0, 0.05 * (len(corners[0]) if corners else 4) * 20 / n * 20))
+        D = _TrackImage(gray, polarity, sig_px, bg_sigma_px=max(3 * sig_px, 2.5 * w_med * scale))
+        # The track term carries the weight of ~400 unit residuals however many layout
+        # points there are: enough to set what the corners leave open (k1, k2, and the
+        # whole mapping for point hints) without overruling well-measured corners.
+        wt = 20.0 / np.sqrt(len(lay_pts))
 
         def resid(xx):
             uv = mp.project(xx, lay_pts)
-            r = [wt * (1.0 - _sample(D, uv, fac)) / np.sqrt(n) * 10]
+            # Saturating reward: a track centre scores ~1-2 sd of local contrast; capping it
+            # keeps a few very contrasted spots (glare, markers) from pulling the layout, and
+            # gaps or missing beads cost at most a bounded amount (robust like soft-L1).
+            r = [wt * (2.0 - 2.0 * np.tanh(D(uv) / 2.0))]
             if corners is not None:
                 r.append(((mp.project(xx, corners[0]) - corners[1]) / sig_c).ravel())
             if hints is not None:
                 r.append(((mp.project(xx, hints[0]) - hints[1]) / (sig_h if corners is None else 10 * sig_h)).ravel())
-            if mp.with_distortion:
-                r.append(np.array([xx[8] / 0.2, xx[9] / 0.2]))   # prior: |k| of real lenses < ~0.2
-            return np.concatenate(r)
+            return np.concatenate(r + prior(xx))
 
-        sol = optimize.least_squares(resid, x, loss="soft_l1", f_scale=1.0, x_scale="jac",
-                                     diff_step=1e-6, max_nfev=60)
+        sol = optimize.least_squares(resid, x, x_scale="jac", diff_step=1e-6, max_nfev=60)
         x = sol.x
     return x

@@ -1,0 +1,294 @@
+"""Bead width along every test track, in mm, with a one-sigma uncertainty per station.
+
+At each station of ``patterns.manifest.sample_points`` (every 0.25 mm) the image is sampled
+along the track normal *in bed millimetres* (points X + t n, t in mm, mapped through the
+registration, bilinear ``scipy.ndimage.map_coordinates``): the local Jacobian of the
+mapping is thereby applied exactly, and the fitted edge-pair width (measure.edges) is in
+mm directly. Two passes: first with the blur free; then the blur, which is a property of
+the optics and therefore smooth over the image, is fitted as a plane s_px(u, v) over the
+wide beads (w > 5 s, where w and s separate) and held fixed, which removes the w-s-A
+degeneracy of narrow beads.
+
+Uncertainty: the scaled covariance of the fit (measure.edges) times
+sqrt(1 / min(1, step_px)) because profile samples closer than a pixel are not independent,
+times ``SD_CALIBRATION`` (set on renders so that ~68 % of true errors fall within
+width_sd_mm, bench/bench_measure.py), plus ``SD_FLOOR_PX`` in quadrature (edge model error).
+
+Stations are flagged, never silently used (valid = 0 and a reason): ``edge`` (profile leaves
+the image), ``crossing`` / ``neighbour`` (another track touches the bead or sits inside
+the profile window, from the manifest geometry), ``label`` / ``fiducial`` / ``ruler``
+(the same for printed furniture), ``glare`` (saturated pixels on the bead), ``missing``
+(no bead: width 0), ``fit`` (failed or implausible fit), ``blob`` (far wider than commanded).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from measure import edges
+from measure.table import WidthTable
+from patterns.manifest import Manifest, Samples, sample_points
+
+#: Multiplies the fit sd; from bench_measure coverage on renders (68 % target).
+SD_CALIBRATION = 1.0
+#: Edge-model error added in quadrature (px), e.g. rounding of the bead shoulder.
+SD_FLOOR_PX = 0.03
+#: Profile step (px) aimed for; the fit is insensitive below ~0.5 px.
+STEP_PX = 0.5
+#: Fewest background samples each side (mm) needed for a trustworthy edge fit.
+MIN_BACKGROUND_MM = 0.2
+#: A bead whose amplitude is below this fraction of the track's typical one is missing.
+MISSING_FRACTION = 0.3
+
+
+@dataclass
+class WidthMeasurement:
+    """All that :func:`measure_widths` found; ``table`` is the widths CSV.
+
+    centre_mm  fitted bead centre offset along the normal (mm, + = along n)
+    blur_mm    edge blur s (mm); amplitude: signed bead contrast (intensity units)
+    nx, ny     unit normal used at each station (bed); window_mm half-length of the profile
+    """
+
+    table: WidthTable
+    centre_mm: np.ndarray
+    blur_mm: np.ndarray
+    amplitude: np.ndarray
+    nx: np.ndarray
+    ny: np.ndarray
+    window_mm: np.ndarray
+    blur_plane_px: tuple
+
+
+def widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
+           color=None) -> WidthTable:
+    """Widths table of a registered image (see :func:`measure_widths`)."""
+    return measure_widths(image, manifest_or_samples, registration, manifest=manifest, color=color).table
+
+
+def measure_widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
+                   color=None, ds_mm: float = 0.25, fix_blur: bool = True) -> WidthMeasurement:
+    """Measure the bead width at every station.
+
+    image                gray float (H, W), 0..1
+    manifest_or_samples  a Manifest (stations every ``ds_mm`` along its test tracks) or Samples
+    registration         measure.register.Registration of this image
+    manifest             the manifest, for the neighbour/label flags, when Samples are given
+    color                uint8 (H, W, 3) image for glare detection (saturation in any channel)
+    """
+    if isinstance(manifest_or_samples, Manifest):
+        manifest = manifest_or_samples
+        smp = sample_points(manifest, ds_mm=ds_mm)
+    else:
+        smp = manifest_or_samples
+    gray = np.asarray(image, dtype=np.float32)
+    n = len(smp)
+    Hh, W = gray.shape
+    xy = np.column_stack([smp.x_mm, smp.y_mm])
+    nrm = np.column_stack([smp.nx, smp.ny])
+    w_nom = np.asarray(smp.width_nominal_mm, float)
+    w_ref = _reference_width(smp, w_nom)
+    flag = np.array([""] * n, dtype=object)
+
+    # -- geometry: clearance to other tracks and furniture sets window and flags -------
+    gap, gap_kind = _clearance(manifest, smp, w_ref) if manifest is not None else (
+        np.full(n, np.inf), np.array([""] * n, dtype=object))
+    bg = np.clip(gap - 0.05, MIN_BACKGROUND_MM, np.maximum(0.6, w_ref))
+    half = w_ref / 2 + bg
+    touching = gap < 0.05
+    crowded = ~touching & (gap - 0.05 < MIN_BACKGROUND_MM)
+    flag[touching] = np.where(gap_kind[touching] == "test", "crossing", gap_kind[touching])
+    flag[crowded] = np.where(gap_kind[crowded] == "test", "neighbour", gap_kind[crowded])
+    flag[(flag == "prime") | (flag == "other")] = "crossing"
+    if manifest is not None:
+        near_f = _near_furniture(manifest, xy, half)
+        flag[(flag == "") & (near_f != "")] = near_f[(flag == "") & (near_f != "")]
+
+    # -- sample the profiles ---------------------------------------------------------
+    eps = 0.05
+    uv_c = registration.project(xy)
+    ppm_n = np.hypot(*(registration.project(xy + eps * nrm) - registration.project(xy - eps * nrm)).T) / (2 * eps)
+    m = int(np.clip(np.ceil(np.percentile(2 * half * ppm_n, 95) / STEP_PX) + 1, 24, 240)) if n else 24
+    grid = np.linspace(-1.0, 1.0, m)
+    t = half[:, None] * grid[None, :]
+    pts = xy[:, None, :] + t[..., None] * nrm[:, None, :]
+    uv = registration.project(pts.reshape(-1, 2)).reshape(n, m, 2)
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= Hh - 1)
+    y = ndimage.map_coordinates(gray, [uv[..., 1].ravel(), uv[..., 0].ravel()], order=1,
+                                mode="nearest").reshape(n, m)
+    out = inside.mean(axis=1) < 0.999
+    flag[out] = "edge"
+    step_px = (2 * half / (m - 1)) * ppm_n
+
+    # -- fit: blur free, then blur from the plane over wide beads ----------------------
+    pol = float(getattr(registration, "polarity", 1.0))
+    s0 = 1.0 / np.maximum(ppm_n, 1e-9)
+    p0 = edges.initial_guess(t, y, pol, s0)
+    fit = edges.fit_profiles(t, y, p0, weights=inside.astype(float))
+    blur_px = fit.params[:, 5] * ppm_n
+    plane = _blur_plane(uv_c, blur_px, fit, ok=fit.ok & (flag == "") & (fit.width > 5 * fit.params[:, 5]))
+    if fix_blur and plane is not None:
+        p1 = fit.params.copy()
+        p1[:, 5] = np.clip(plane[0] + plane[1] * uv_c[:, 0] + plane[2] * uv_c[:, 1], 0.3, None) / ppm_n
+        bad = ~np.isfinite(p1).all(axis=1) | ~fit.ok
+        p1[bad] = p0[bad]
+        p1[bad, 5] = p1[~bad, 5].mean() if (~bad).any() else p0[bad, 5]
+        fit = edges.fit_profiles(t, y, p1, fixed_s=True, weights=inside.astype(float))
+
+    w = fit.width.copy()
+    c = fit.centre.copy()
+    sd = fit.width_sd * np.sqrt(1.0 / np.minimum(1.0, step_px)) * SD_CALIBRATION
+    sd = np.sqrt(sd ** 2 + (SD_FLOOR_PX / ppm_n) ** 2)
+
+    # -- flags from the fit ---------------------------------------------------------------
+    amp = pol * fit.amplitude
+    a_ref = _track_median(smp.track, amp, fit.ok & (flag == ""))
+    noise = fit.rms
+    missing = (amp < MISSING_FRACTION * a_ref) | (amp < 3 * noise) | (w < 1.0 / ppm_n)
+    if color is not None:
+        sat = _saturated(color, uv, t, w, c, inside)
+        glare = sat & (np.mean(sat) < 0.5)     # a whole saturated print is exposure, not glare
+        flag[(flag == "") & glare] = "glare"
+    free = flag == ""
+    flag[free & missing] = "missing"
+    failed = (~fit.ok | ~np.isfinite(sd) | (sd > 0.25 * np.maximum(w, 0.1)) | (np.abs(c) > half - 0.5 * w)
+              | (w > 2 * half - 2 * MIN_BACKGROUND_MM * 0.5))
+    flag[(flag == "") & failed] = "fit"
+    blob = w > np.maximum(2.2 * w_ref, w_ref + 0.6)
+    flag[(flag == "") & blob] = "blob"
+    is_missing = flag == "missing"
+    w[is_missing] = 0.0
+    sd[is_missing] = 1.0 / ppm_n[is_missing]    # a bead narrower than ~1 px would not be seen
+    c[is_missing] = 0.0
+    valid = flag == ""
+    w = np.where(np.isfinite(w), w, np.nan)
+    sd = np.where(np.isfinite(sd), sd, np.nan)
+    table = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                       width_mm=w, width_sd_mm=sd, valid=valid, flag=flag)
+    return WidthMeasurement(table=table, centre_mm=c, blur_mm=fit.params[:, 5], amplitude=fit.amplitude,
+                            nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
+                            blur_plane_px=tuple(plane) if plane is not None else ())
+
+
+# -- helpers -----------------------------------------------------------------------------
+def _reference_width(smp: Samples, w_nom):
+    """Width (mm) the profile window is sized for: the commanded width, or where the
+    pattern coasts (commanded 0) the track's typical commanded width."""
+    w = np.array(w_nom, float)
+    zero = w <= 0
+    if zero.any():
+        for tid in np.unique(smp.track[zero]):
+            on = smp.track == tid
+            pos = w[on] > 0
+            w[on & zero] = np.median(w[on][pos]) if pos.any() else 0.4
+    return w
+
+
+def _clearance(manifest: Manifest, smp: Samples, w_ref):
+    """Edge-to-edge gap (mm) from each station's bead to the nearest other bead, and the
+    kind of that track ("test", "label", "ruler", "fiducial", ...).
+
+    Other bead = any track but this one, or this track more than a bead-scale away along
+    its length (spirals, hairpins, self-crossings).
+    """
+    pts, tid, s, hw, kind = [], [], [], [], []
+    for tr in manifest.tracks:
+        if tr.length_mm <= 0:
+            continue
+        ss = np.arange(0.0, tr.length_mm + 1e-9, 0.1)
+        w = tr.interp("width_mm", ss)
+        keep = w > 0
+        pts.append(tr.at(ss[keep])[0])
+        tid.append(np.full(keep.sum(), tr.id))
+        s.append(ss[keep])
+        hw.append(w[keep] / 2)
+        kind.append(np.full(keep.sum(), tr.kind, dtype=object))
+    n = len(smp)
+    gap = np.full(n, np.inf)
+    gkind = np.array([""] * n, dtype=object)
+    if not pts:
+        return gap, gkind
+    pts, tid, s, hw, kind = map(np.concatenate, (pts, tid, s, hw, kind))
+    tree = cKDTree(pts)
+    xy = np.column_stack([smp.x_mm, smp.y_mm])
+    reach = w_ref / 2 + float(hw.max()) + max(0.6, float(np.max(w_ref, initial=0.4)))
+    for i, nb in enumerate(tree.query_ball_point(xy, reach)):
+        if not nb:
+            continue
+        nb = np.asarray(nb)
+        other = (tid[nb] != smp.track[i]) | (np.abs(s[nb] - smp.s_mm[i]) > 2.0 * reach[i] + 0.5)
+        if not other.any():
+            continue
+        nb = nb[other]
+        g = np.hypot(*(pts[nb] - xy[i]).T) - hw[nb] - w_ref[i] / 2
+        j = np.argmin(g)
+        gap[i], gkind[i] = g[j], kind[nb[j]]
+    return gap, gkind
+
+
+def _near_furniture(manifest: Manifest, xy, half):
+    """"fiducial" / "label" where the profile window reaches a marker (with its quiet
+    frame) or a label's bounding box."""
+    out = np.array([""] * len(xy), dtype=object)
+    for f in manifest.fiducials:
+        c = np.asarray(f.corners_mm, float)
+        lo, hi = c.min(axis=0) - f.size_mm / 6, c.max(axis=0) + f.size_mm / 6
+        d = _box_distance(xy, lo, hi)
+        out[(d < half) & (out == "")] = "fiducial"
+    for lab in manifest.labels:
+        bb = lab.get("bbox_mm") if isinstance(lab, dict) else None
+        if bb and len(bb) == 4:
+            d = _box_distance(xy, np.array(bb[:2], float) - 0.3, np.array(bb[2:], float) + 0.3)
+            out[(d < half) & (out == "")] = "label"
+    return out
+
+
+def _box_distance(xy, lo, hi):
+    dx = np.maximum(np.maximum(lo[0] - xy[:, 0], xy[:, 0] - hi[0]), 0)
+    dy = np.maximum(np.maximum(lo[1] - xy[:, 1], xy[:, 1] - hi[1]), 0)
+    return np.hypot(dx, dy)
+
+
+def _blur_plane(uv, blur_px, fit, ok):
+    """Least-squares plane s_px = a + b u + c v over the stations ``ok`` (2 rounds with
+    3-MAD outlier rejection); None if fewer than 20 stations qualify."""
+    if ok.sum() < 20:
+        return None
+    A = np.column_stack([np.ones(ok.sum()), uv[ok]])
+    b = blur_px[ok]
+    keep = np.isfinite(b)
+    coef = None
+    for _ in range(2):
+        coef = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+        r = b - A @ coef
+        mad = np.median(np.abs(r[keep])) * 1.4826 + 1e-9
+        keep = np.abs(r) < 3 * mad
+        if keep.sum() < 10:
+            break
+    return coef
+
+
+def _track_median(track, values, ok):
+    """Per-station median of ``values`` over the good stations of its track (global
+    median where a track has none)."""
+    out = np.full(len(track), np.nan)
+    glob = np.median(values[ok]) if ok.any() else np.nanmedian(values)
+    for tid in np.unique(track):
+        on = track == tid
+        good = on & ok
+        out[on] = np.median(values[good]) if good.sum() >= 5 else glob
+    return out
+
+
+def _saturated(color, uv, t, w, c, inside):
+    """True where a pixel on the bead (|t - c| < w/2) is saturated in any channel."""
+    col = np.asarray(color)
+    peak = col.max(axis=2) if col.ndim == 3 else col
+    sat_img = (peak >= 254).astype(np.float32)
+    on_bead = np.abs(t - c[:, None]) < np.maximum(w, 0)[:, None] / 2
+    s = ndimage.map_coordinates(sat_img, [uv[..., 1].ravel(), uv[..., 0].ravel()], order=0,
+                                mode="constant", cval=0.0).reshape(t.shape)
+    return ((s > 0) & on_bead & inside).any(axis=1)
