@@ -21,6 +21,9 @@ def atomic_write(path, writer, binary: bool = True) -> Path:
     try:
         with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"encoding": "utf-8"})) as f:
             writer(f)
+        # mkstemp makes 0600 files; give the result the mode a plain open() would (or keep
+        # the mode of the file being replaced) so users' outputs stay readable by others.
+        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -29,6 +32,12 @@ def atomic_write(path, writer, binary: bool = True) -> Path:
             pass
         raise
     return path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_text(path, text: str) -> Path:

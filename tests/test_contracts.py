@@ -68,3 +68,28 @@ def test_width_table_round_trip_and_nan_rejected(tmp_path):
     (tmp_path / "e.csv").write_text("")
     with pytest.raises(UserError, match="empty"):
         WidthTable.load(tmp_path / "e.csv")
+
+
+def test_atomic_write_keeps_mode_and_leaves_no_partial_file(tmp_path):
+    import os
+    import stat
+
+    from calib.fileio import atomic_write, atomic_write_text, backup
+
+    p = atomic_write_text(tmp_path / "a.txt", "hello")
+    mode = stat.S_IMODE(p.stat().st_mode)
+    assert mode & 0o044  # readable by group/others under a normal umask (not mkstemp's 0600)
+    os.chmod(p, 0o640)
+    atomic_write_text(p, "again")
+    assert stat.S_IMODE(p.stat().st_mode) == 0o640 and p.read_text() == "again"
+
+    def boom(f):
+        f.write(b"partial")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError):
+        atomic_write(p, boom)
+    assert p.read_text() == "again"
+    assert [q.name for q in tmp_path.iterdir()] == ["a.txt"]
+    b = backup(p)
+    assert b.read_text() == "again" and b != p
