@@ -189,47 +189,70 @@ def _track_coverage(X, Y, seg, segw, bbox, starts, track_sigma, alpha):  # pragm
 # =====================================================================================
 # geometry preparation
 # =====================================================================================
-def _track_nodes(track, widths: WidthTable | None):
-    """Polyline nodes (M, 2) mm and widths (M,) mm to draw for one track.
+def _track_pieces(track, widths: WidthTable | None, step_mm: float = 0.25, turn_deg: float = 100.0):
+    """Segments to draw for one track, split into pieces that each form one bead.
 
-    Test tracks in ``widths``: nodes at every vertex and every sample; width interpolated
-    linearly in s between the samples. Other tracks: vertices, densified to <= 1 mm.
+    Returns a list of (seg (K, 4) [ax, ay, bx, by] mm, w (K, 2) end widths mm). Each
+    vertex-to-vertex segment is cut into pieces of <= ``step_mm``; widths come from the
+    ``widths`` table (test tracks, linear in s between samples) or from the per-vertex
+    commanded widths. A segment with zero width at both ends (coasting, travel inside the
+    track) is not drawn and ends the piece; a turn sharper than ``turn_deg`` (raster
+    U-turns) starts a new piece, so neighbouring raster lines add up instead of leaving a
+    half-coverage seam where one bead's max-distance union would meet itself.
     """
-    cl = track.cumlen_mm
-    if track.length_mm <= 0:
-        return track.points_mm[:1], track.width_mm[:1]
-    sel = None
+    pts, cl = track.points_mm, track.cumlen_mm
+    tab = None
     if widths is not None and track.kind == "test":
         sel = widths.track == track.id
-        if not sel.any():
-            sel = None
-    dense = np.linspace(0.0, cl[-1], int(np.ceil(cl[-1] / 1.0)) + 1)
-    if sel is not None:
-        s_tab = widths.s_mm[sel]
-        order = np.argsort(s_tab)
-        s_tab, w_tab = s_tab[order], widths.width_mm[sel][order]
-        s = np.unique(np.concatenate([cl, s_tab, dense]))
-        w = np.interp(s, s_tab, w_tab)
-    else:
-        s = np.unique(np.concatenate([cl, dense]))
-        w = track.interp("width_mm", s)
-    pos, _ = track.at(s)
-    # vertices: take the exact vertex (at() at a vertex returns the next segment's start)
-    return pos, np.maximum(np.nan_to_num(w), 0.0)
+        if sel.any():
+            order = np.argsort(widths.s_mm[sel])
+            tab = widths.s_mm[sel][order], widths.width_mm[sel][order]
+    pieces, cur_seg, cur_w = [], [], []
+    last_dir = None
+    cos_turn = np.cos(np.deg2rad(turn_deg))
+
+    def flush():
+        if cur_seg:
+            pieces.append((np.vstack(cur_seg), np.vstack(cur_w)))
+            cur_seg.clear()
+            cur_w.clear()
+
+    for i in range(len(pts) - 1):
+        L = cl[i + 1] - cl[i]
+        if L <= 1e-9:
+            continue
+        n = int(np.ceil(L / step_mm))
+        f = np.linspace(0.0, 1.0, n + 1)
+        if tab is not None:
+            w = np.interp(cl[i] + f * L, tab[0], tab[1])
+        else:
+            w = track.width_mm[i] + f * (track.width_mm[i + 1] - track.width_mm[i])
+        w = np.maximum(np.nan_to_num(w), 0.0)
+        d = (pts[i + 1] - pts[i]) / L
+        if w.max() <= 0:
+            flush()
+            last_dir = None
+            continue
+        if last_dir is not None and float(d @ last_dir) < cos_turn:
+            flush()
+        last_dir = d
+        xy = pts[i] + f[:, None] * (pts[i + 1] - pts[i])
+        cur_seg.append(np.hstack([xy[:-1], xy[1:]]))
+        cur_w.append(np.column_stack([w[:-1], w[1:]]))
+    flush()
+    return pieces
 
 
 def _segments(manifest: Manifest, widths: WidthTable | None, camera: Camera, ss: int,
               edge_mm: float | None):
     seg, segw, sig, starts = [], [], [], [0]
     for tr in manifest.tracks:
-        pts, w = _track_nodes(tr, widths)
-        if len(pts) < 2:
-            continue
-        seg.append(np.hstack([pts[:-1], pts[1:]]))
-        segw.append(np.column_stack([w[:-1], w[1:]]))
-        starts.append(starts[-1] + len(pts) - 1)
         h = float(np.nanmean(tr.height_mm)) if len(tr.height_mm) else 0.2
-        sig.append(edge_mm if edge_mm is not None else EDGE_SOFTNESS_PER_HEIGHT * max(h, 0.05))
+        for sg, sw in _track_pieces(tr, widths, step_mm=0.25 if tr.kind == "test" else 1.0):
+            seg.append(sg)
+            segw.append(sw)
+            starts.append(starts[-1] + len(sg))
+            sig.append(edge_mm if edge_mm is not None else EDGE_SOFTNESS_PER_HEIGHT * max(h, 0.05))
     if not seg:
         return None
     seg = np.vstack(seg)
