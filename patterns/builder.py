@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fit.geometry import bead_area_mm2, bead_width_mm
+from fit.geometry import bead_area_mm2
 from patterns import font
 from patterns.fiducials import FiducialPlan, corner_origins, plan_fiducial
 from patterns.gcode_writer import GcodeWriter
@@ -117,23 +117,25 @@ class PatternBuilder:
         self._cur = _Rec(tid, kind, group, dict(params or {}))
         self._recs[tid] = self._cur
         self.writer.begin_track(tid, kind)
-        self._vertex(self.position, 0.0, 0.0)
+        self._vertex(self.position, 0.0, 0.0, self.layer_height_mm)
         return tid
 
     def end(self) -> None:
         self.writer.end_track()
         self._cur = None
 
-    def _vertex(self, xy, w, q):
+    def _vertex(self, xy, w, q, h_mm=None):
+        """Record a vertex with bead width ``w`` (mm), flow ``q`` (mm^3/s) and bead height
+        ``h_mm`` (mm; default: the previous vertex's)."""
         r = self._cur
         if r is None:
             return
         r.points.append([float(xy[0]), float(xy[1])])
         r.widths.append(float(w))
-        r.heights.append(float(self._z or self.layer_height_mm))
+        r.heights.append(float(h_mm if h_mm is not None else (r.heights[-1] if r.heights else self.layer_height_mm)))
         r.flows.append(float(q))
         if len(r.points) == 2:          # the start vertex takes the first segment's values
-            r.widths[0], r.flows[0] = r.widths[1], r.flows[1]
+            r.widths[0], r.flows[0], r.heights[0] = r.widths[1], r.flows[1], r.heights[1]
 
     def extrude(self, points_mm, width_mm, speed_mm_s: float, height_mm: float | None = None) -> float:
         """Extrude along ``points_mm`` (N, 2); width per segment (scalar or N-1). Returns filament mm."""
@@ -143,7 +145,7 @@ class PatternBuilder:
         e = 0.0
         for p, wi in zip(pts[1:], w):
             e += self.writer.extrude_line(p[0], p[1], wi, speed_mm_s, height_mm=h)
-            self._vertex(p, wi, float(bead_area_mm2(wi, h)) * speed_mm_s)
+            self._vertex(p, wi, float(bead_area_mm2(wi, h)) * speed_mm_s, h)
         return e
 
     def coast(self, points_mm, speed_mm_s, e_mm=0.0) -> None:
@@ -228,8 +230,9 @@ class PatternBuilder:
         """Finish the G-code and return (gcode_text, manifest).
 
         With ``plan`` the manifest comes from re-reading the G-code
-        (``patterns.plan.manifest_from_gcode``: tracks plus the planned timeline); the
-        builder's own records fill in group and params.
+        (``patterns.plan.manifest_from_gcode``: tracks plus the planned timeline, widths
+        at the commanded bead heights that the ``h=`` track labels carry); the builder's
+        own records fill in kind, group and params.
         """
         self.retract()
         self.writer.footer()
@@ -251,7 +254,6 @@ class PatternBuilder:
             rec = self._recs.get(tr.id)
             if rec is not None:
                 tr.kind, tr.group, tr.params = rec.kind, rec.group, dict(rec.params)
-                _set_height(tr, rec.heights[0])
         manifest.fiducials = list(self.fiducial_list)
         manifest.labels = list(self.labels)
         manifest.ruler = dict(self.ruler_info)
@@ -266,21 +268,6 @@ class PatternBuilder:
                              flow_mm3_s=np.array(r.flows), z_mm=float(r.heights[0]),
                              group=r.group, params=dict(r.params)))
         return out
-
-
-def _set_height(tr: Track, h_mm: float) -> None:
-    """Give a planned track the layer height the pattern printed it at.
-
-    The planner guesses heights from z levels (right for third-party G-code); the pattern
-    knows them. The commanded area A = bead_area(w, h) is what the G-code fixes, so the
-    width is re-derived from the planner's A at the known height (flow is unchanged).
-    """
-    if np.allclose(tr.height_mm, h_mm):
-        return
-    area = bead_area_mm2(tr.width_mm, tr.height_mm)
-    tr.width_mm = np.where(tr.width_mm > 0, bead_width_mm(area, h_mm), 0.0)
-    tr.height_mm = np.full(len(tr.points_mm), float(h_mm))
-    tr.z_mm = float(h_mm)
 
 
 def _registry() -> dict:

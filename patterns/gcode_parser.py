@@ -4,7 +4,9 @@ Reads G0/G1, G2/G3 arcs (I/J or R; linearised into chords whose sagitta is at mo
 ``arc_tolerance_mm``, sagitta = r (1 - cos(dtheta/2))), G90/G91, M82/M83, G92 (any axis),
 G20/G21, G4 (P ms, S s), G10/G11 firmware retraction (the profile's retract length and
 speed), G28 (position := 0), modal F, comments (``;`` and ``( )``), our ``;TRACK id=<n>
-kind=<kind>`` / ``;END_TRACK`` labels, pressure-advance commands (``M900 K``,
+kind=<kind> h=<mm>`` / ``;HEIGHT h=<mm>`` / ``;END_TRACK`` labels (``h``: the commanded bead
+height of the following extruding moves, so a track printed at h != z spacing keeps its
+commanded width), pressure-advance commands (``M900 K``,
 ``SET_PRESSURE_ADVANCE ADVANCE= SMOOTH_TIME=``, ``M572 S``) and acceleration changes
 (``M204 S/P``, ``SET_VELOCITY_LIMIT ACCEL=``). Anything else is skipped and counted.
 
@@ -30,11 +32,13 @@ T0 T1 T2 T3 M601 M602 M701 M702 M486 M413 M1001""".split())
 _WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)?")
 _KLIPPER_ARG = re.compile(r"([A-Z_]+)\s*=\s*([^\s]+)")
 _PAREN = re.compile(r"\([^)]*\)")
-_TRACK = re.compile(r"^;\s*TRACK\s+id\s*=\s*(-?\d+)(?:\s+kind\s*=\s*(\w+))?", re.I)
+_TRACK = re.compile(r"^;\s*TRACK\s+id\s*=\s*(-?\d+)(?:\s+kind\s*=\s*(\w+))?"
+                    r"(?:\s+h\s*=\s*(\d+\.?\d*|\.\d+))?", re.I)
+_HEIGHT = re.compile(r"^;\s*HEIGHT\s+h\s*=\s*(\d+\.?\d*|\.\d+)", re.I)
 _END_TRACK = re.compile(r"^;\s*END_TRACK\b", re.I)
 
 MOVE_FIELDS = ("x0_mm", "y0_mm", "z0_mm", "x_mm", "y_mm", "z_mm", "de_mm", "feed_mm_s",
-               "dwell_s", "accel_mm_s2", "track", "line")
+               "dwell_s", "accel_mm_s2", "track", "line", "height_mm")
 
 
 @dataclass
@@ -49,6 +53,8 @@ class Moves:
     accel_mm_s2           acceleration set by M204 / SET_VELOCITY_LIMIT (NaN: profile's)
     track                 ;TRACK label id, -1 outside labelled tracks
     line                  1-based source line number
+    height_mm             commanded bead height from the ``h=`` labels (mm), NaN where
+                          the G-code does not say (third-party G-code, outside tracks)
     """
 
     x0_mm: np.ndarray
@@ -63,8 +69,11 @@ class Moves:
     accel_mm_s2: np.ndarray
     track: np.ndarray
     line: np.ndarray
+    height_mm: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.height_mm is None:
+            self.height_mm = np.full(np.shape(self.x_mm), np.nan)
         for name in MOVE_FIELDS:
             dt = np.int64 if name in ("track", "line") else float
             setattr(self, name, np.asarray(getattr(self, name), dtype=dt))
@@ -151,6 +160,7 @@ class _State:
         self.feed = 25.0                    # mm/s, modal
         self.accel = math.nan
         self.track = -1
+        self.h_mm = math.nan                # commanded bead height from ;TRACK h= / ;HEIGHT h=
         self.kinds: dict[int, str] = {}
         self.rows: list[tuple] = []
         self.pa: list[PAEvent] = []
@@ -167,8 +177,14 @@ class _State:
             m = _TRACK.match(s)
             if m:
                 self._begin_track(int(m.group(1)), (m.group(2) or "test").lower(), lineno)
+                self.h_mm = float(m.group(3)) if m.group(3) else math.nan
             elif _END_TRACK.match(s):
                 self.track = -1
+                self.h_mm = math.nan
+            else:
+                mh = _HEIGHT.match(s)
+                if mh:
+                    self.h_mm = float(mh.group(1))
             return 0
         code = s.split(";", 1)[0]
         if "(" in code:
@@ -387,7 +403,7 @@ class _State:
 
     def _row(self, p0, p1, de, feed, dwell, lineno):
         self.rows.append((p0[0], p0[1], p0[2], p1[0], p1[1], p1[2], de, feed, dwell,
-                          self.accel, self.track, lineno))
+                          self.accel, self.track, lineno, self.h_mm))
 
     def result(self, n_lines: int) -> ParseResult:
         if self.rows:

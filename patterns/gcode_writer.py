@@ -9,8 +9,12 @@ Conventions (docs/ARCHITECTURE.md "G-code conventions"): relative E (M83) by def
 absolute E (M82) when asked or when the printer lacks M83; firmware pressure advance
 switched off in the header unless a value is given (Marlin ``M900 K``, Klipper
 ``SET_PRESSURE_ADVANCE ADVANCE=``, RRF ``M572 D0 S``); feedrates in mm/min and only
-written when they change; every track labelled ``;TRACK id=<n> kind=<kind>`` ...
-``;END_TRACK``. Every XY target is checked against the profile's bed.
+written when they change; every track labelled ``;TRACK id=<n> kind=<kind> h=<mm>`` ...
+``;END_TRACK``, where ``h`` is the commanded bead height (mm) of its extruding moves; a
+move inside a track that commands another height is preceded by ``;HEIGHT h=<mm>``. The
+parser reads these back, so the manifest reproduces the commanded width even when a track
+is printed at a height other than the z spacing. Every XY target is checked against the
+profile's bed.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ from patterns.profile import PrinterProfile, format_gcode_template, load_profile
 
 _E_DECIMALS = 5
 _XY_DECIMALS = 3
+_H_DECIMALS = 4     # bead height in the labels (0.1 um)
 
 
 class GcodeWriter:
@@ -49,6 +54,7 @@ class GcodeWriter:
         self._e_total = 0.0        # cumulative commanded filament, never reset
         self._n_moves = 0
         self._track: int | None = None
+        self._track_h_mm: float | None = None   # bead height the labels last declared
         self._af = self.profile.filament_area_mm2
 
     # -- state --------------------------------------------------------------
@@ -112,14 +118,24 @@ class GcodeWriter:
             self._emit(line.rstrip())
 
     # -- tracks ---------------------------------------------------------------
-    def begin_track(self, track_id: int, kind: str) -> None:
+    def begin_track(self, track_id: int, kind: str, height_mm: float | None = None) -> None:
+        """Open track ``track_id``: ``;TRACK id=<n> kind=<kind> h=<mm>``.
+
+        ``height_mm`` is the bead height of its extruding moves (default: the writer's
+        layer height); extrude_line with another height adds a ``;HEIGHT h=<mm>`` line.
+        """
         if self._track is not None:
             raise ValueError(f"begin_track({track_id}) inside track {self._track}; call end_track first")
+        h = self.layer_height_mm if height_mm is None else float(height_mm)
+        if not h > 0:
+            raise UserError(f"track {track_id}: bead height must be > 0 mm, got {h}")
         self._track = int(track_id)
-        self._lines.append(f";TRACK id={int(track_id)} kind={kind}")
+        self._track_h_mm = round(h, _H_DECIMALS)
+        self._lines.append(f";TRACK id={int(track_id)} kind={kind} h={_fmt(self._track_h_mm, _H_DECIMALS)}")
 
     def end_track(self) -> None:
         self._track = None
+        self._track_h_mm = None
         self._lines.append(";END_TRACK")
 
     # -- motion ---------------------------------------------------------------
@@ -152,6 +168,9 @@ class GcodeWriter:
         if w < 0 or h <= 0:
             raise UserError(f"move {self._n_moves + 1}: bead width {w} mm / height {h} mm must be positive")
         x, y = self._target(x_mm, y_mm, "extrude_line")
+        if self._track is not None and round(h, _H_DECIMALS) != self._track_h_mm:
+            self._track_h_mm = round(h, _H_DECIMALS)
+            self._lines.append(f";HEIGHT h={_fmt(self._track_h_mm, _H_DECIMALS)}")
         length = math.hypot(x - self._x, y - self._y)
         e = float(bead_area_mm2(w, h)) * length / self._af * self.flow_multiplier
         return self._g1_e(x, y, e, speed_mm_s)

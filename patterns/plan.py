@@ -11,10 +11,13 @@ cruise head speed of the move. Where the width changes between moves the polylin
 repeats the vertex, so widths step instead of ramping. Moves without extrusion inside a
 labelled track get width 0 (coasting).
 
-Layer height: z minus the highest lower z level that holds at least a quarter as much
-filament as this level (so a prime line at z = 0.2 under a single-layer test at
-z = 0.3 does not make the test 0.1 mm high); z itself on the first layer. Pass
-``layer_height_mm`` to override.
+Layer height h: the commanded bead height where the G-code says it (our writer's
+``;TRACK ... h=<mm>`` / ``;HEIGHT h=<mm>`` labels, ``Moves.height_mm``), so a track
+printed with h different from the z spacing comes back with its commanded width.
+Elsewhere (third-party G-code): z minus the highest lower z level that holds at least a
+quarter as much filament as this level (so a prime line at z = 0.2 under a single-layer
+test at z = 0.3 does not make the test 0.1 mm high); z itself on the first layer. Pass
+``layer_height_mm`` to override both.
 """
 from __future__ import annotations
 
@@ -59,8 +62,12 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
         area = np.where(lxy > 1e-9, np.maximum(mv.de_mm, 0.0) * af / lxy, 0.0)
         l3 = mp.length_mm
         v_head = np.where((mp.kind == 0) & (l3 > 0), mp.v_cruise_mm_s * lxy / np.where(l3 > 0, l3, 1), 0.0)
-    heights = _layer_heights(mv, area, lxy) if layer_height_mm is None else \
-        np.full(len(mv), float(layer_height_mm))
+    if layer_height_mm is None:
+        heights = _layer_heights(mv, area, lxy)
+        labelled_h = np.isfinite(mv.height_mm) & (mv.height_mm > 0)
+        heights = np.where(labelled_h, mv.height_mm, heights)
+    else:
+        heights = np.full(len(mv), float(layer_height_mm))
 
     tracks = []
     on = track >= 0

@@ -99,3 +99,50 @@ def test_calib_plan_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert err.startswith("calib plan: error: unknown printer 'no_such_printer'") and "\n" not in err
     assert main(["plan", str(tmp_path / "missing.gcode"), "--printer", "adventurer3"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_track_height_label_gives_commanded_width_and_height_off_z_spacing():
+    """A bead 0.3 mm high printed at z = 0.2 (first layer): the z levels say h = 0.2, the
+    ;TRACK h= label says 0.3; the manifest must return the commanded w and h."""
+    w = GcodeWriter("adventurer3", layer_height_mm=0.2)
+    w.header("h label", {})
+    w.set_z(0.2)
+    w.travel(-40, -20)
+    w.begin_track(0, "test", height_mm=0.3)
+    w.extrude_line(0, -20, 0.55, 20, height_mm=0.3)
+    w.extrude_line(40, -20, 0.7, 20, height_mm=0.15)    # height change inside the track
+    w.end_track()
+    w.travel(-40, -10)
+    w.begin_track(1, "test")                             # default: the writer's 0.2 mm
+    w.extrude_line(0, -10, 0.5, 20)
+    w.end_track()
+    w.footer()
+    text = w.text()
+    assert ";TRACK id=0 kind=test h=0.3" in text and ";HEIGHT h=0.15" in text
+    assert ";TRACK id=1 kind=test h=0.2" in text
+    man = manifest_from_gcode(text, "adventurer3")
+    tr = man.track(0)
+    assert np.allclose(tr.interp("width_mm", [10.0, 30.0, 50.0, 70.0]), [0.55, 0.55, 0.7, 0.7], atol=1e-4)
+    assert np.allclose(tr.interp("height_mm", [10.0, 30.0, 50.0, 70.0]), [0.3, 0.3, 0.15, 0.15])
+    assert tr.z_mm == pytest.approx(0.2)
+    assert np.allclose(man.track(1).width_mm, 0.5, atol=1e-4) and np.allclose(man.track(1).height_mm, 0.2)
+    # the same G-code without the labels falls back to the z spacing: wrong width, as documented
+    bare = "\n".join(ln for ln in text.splitlines() if not ln.startswith((";TRACK", ";HEIGHT", ";END")))
+    man2 = manifest_from_gcode(bare, "adventurer3")
+    first = max(man2.tracks, key=lambda t: t.length_mm)
+    assert np.allclose(first.height_mm, 0.2) and first.width_mm[0] > 0.55 + 0.05
+
+
+def test_retract_pattern_manifest_keeps_each_design_width_and_height():
+    """RetractTest lines are printed at h = 0.1 .. 0.3 mm: every planned test track carries
+    the design's commanded width and height."""
+    from patterns.builder import PATTERNS
+    _, man = PATTERNS["retract"]("adventurer3", designs=[1], n_steps=3)
+    tests = man.test_tracks()
+    assert len(tests) == 3
+    for tr in tests:
+        wide = tr.width_mm > 0
+        h = tr.params["height_mm"]
+        assert np.allclose(tr.height_mm[wide], h)
+        # the drawn part (at least) is at the design width
+        assert np.isclose(tr.width_mm[wide], tr.params["width_mm"], atol=1e-4).sum() >= 2
