@@ -1,0 +1,159 @@
+"""The whole loop on the built-in virtual printer, as a user would run it.
+
+pattern -> preview -> print on the virtual printer (whose extruder hides effects the
+base model lacks) -> scan -> measure -> fit the base model -> diagnose -> fit the
+extended model -> watch the error fall -> export -> HTML report.
+
+Every step is the `calib` command a user would type (printed before it runs), so the
+demo doubles as a tutorial and as an end-to-end check of the CLI.
+"""
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calib.errors import UserError
+
+
+def _data_dir() -> Path:
+    from patterns.profile import data_dir
+
+    return Path(data_dir())
+
+
+class _Runner:
+    def __init__(self, out: Path, stream=sys.stdout):
+        self.out = out
+        self.stream = stream
+        self.t0 = time.perf_counter()
+
+    def say(self, text: str = "") -> None:
+        print(text, file=self.stream, flush=True)
+
+    def step(self, title: str, argv: list[str], ok_codes=(0,)) -> int:
+        from calib.cli import main
+
+        argv = [str(a) for a in argv]
+        self.say(f"\n== {title}  [{time.perf_counter() - self.t0:5.0f} s]")
+        self.say("$ calib " + " ".join(shlex.quote(a) for a in argv))
+        code = main(argv)
+        if code not in ok_codes:
+            raise UserError(f"demo step '{title}' failed with exit code {code}")
+        return code
+
+
+def _truth_error(widths_csv: Path, truth_json: Path) -> dict:
+    """Measured-vs-true width error (mm) over valid samples, matched by (track, s_mm)."""
+    from measure.table import WidthTable
+    from measure.truth_io import load_scan_truth
+
+    meas = WidthTable.load(widths_csv)
+    truth = load_scan_truth(truth_json).widths
+    key = {(int(t), round(float(s), 3)): w for t, s, w in zip(truth.track, truth.s_mm, truth.width_mm)}
+    err = [w - key[(int(t), round(float(s), 3))]
+           for t, s, w, v in zip(meas.track, meas.s_mm, meas.width_mm, meas.valid)
+           if v and (int(t), round(float(s), 3)) in key]
+    err = np.asarray(err)
+    return {"n": int(err.size), "valid_fraction": float(np.mean(meas.valid)),
+            "rms_mm": float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan"),
+            "bias_mm": float(np.mean(err)) if err.size else float("nan")}
+
+
+def _fit_summary(fit_json: Path) -> dict:
+    doc = json.loads(fit_json.read_text())
+    info = doc.get("information", {})
+    return {"model": doc["model"], "params": doc["params"], "converged": doc.get("converged"),
+            "rms_mm": info.get("rms_mm"), "chi2_nu": info.get("chi2_nu"), "bic": info.get("bic"),
+            "elpd_loo": (info.get("loo") or {}).get("elpd_loo")}
+
+
+def _print_params(r: _Runner, fit: dict, truth_values: dict) -> None:
+    r.say(f"   {'parameter':26s} {'median':>10s}  {'68% interval':>22s}  {'truth':>8s}")
+    for name, p in fit["params"].items():
+        if name.startswith("noise."):
+            continue
+        lo, hi = p.get("ci68", [np.nan, np.nan])
+        t = truth_values.get(name)
+        ts = f"{t:8.4g}" if t is not None else "  hidden"
+        r.say(f"   {name:26s} {p['median']:10.4g}  [{lo:9.4g}, {hi:9.4g}]  {ts}")
+
+
+def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, camera: str = "flatbed",
+             base_model: str = "pa", seed: int = 1, rounds: int = 2, stream=sys.stdout) -> dict:
+    """Run the loop into ``out_dir``; return a summary dict (also written as demo.json)."""
+    from calib.fileio import atomic_write_text
+    from fit.truth import load_truth
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    truth = Path(truth) if truth else _data_dir() / "truths" / "bowden.toml"
+    spec_true, values_true, _ = load_truth(truth)
+    r = _Runner(out, stream)
+    r.say(f"calib demo: the virtual printer '{printer}' runs the hidden truth {truth.name} "
+          f"({spec_true}); we fit '{base_model}' and let the diagnosis find what is missing.")
+
+    gcode, man = out / "spiral.gcode", out / "spiral.manifest.json"
+    scan, widths, qa = out / "scan.png", out / "widths.csv", out / "qa.png"
+    r.step("1. the test pattern (spiral, stepped extrusion, seed 004)",
+           ["pattern", "spiral-step", "--printer", printer, "-o", gcode])
+    r.step("2. preview", ["preview", gcode, "-o", out / "preview.png"])
+    r.step("3. print it on the virtual printer and scan it", [
+        "simulate", gcode, "--truth", truth, "--camera", camera, "--dpi", "600", "--seed", seed,
+        "--plot", "-o", scan])
+    r.step("4. measure the bead width along every track", [
+        "measure", scan, "--manifest", man, "-o", widths, "--overlay", qa,
+        "--summary", out / "measure.json"])
+    err = _truth_error(widths, scan.with_name(scan.stem + ".truth.json"))
+    r.say(f"   measured vs true width: RMS {err['rms_mm'] * 1000:.1f} um, bias "
+          f"{err['bias_mm'] * 1000:+.1f} um over {err['n']} samples "
+          f"({err['valid_fraction']:.0%} valid)")
+
+    history = []
+    model = base_model
+    for rnd in range(rounds + 1):
+        tag = model.replace("+", "_")
+        fit_json = out / f"fit_{tag}.json"
+        r.step(f"{5 + 2 * rnd}. fit '{model}' (MAP, then emcee until the chains converge)", [
+            "fit", widths, "--manifest", man, "--model", model, "--seed", seed, "-o", fit_json,
+            "--plots", out / f"plots_{tag}"], ok_codes=(0, 3))
+        fs = _fit_summary(fit_json)
+        history.append(fs)
+        _print_params(r, fs, values_true)
+        r.say(f"   residual RMS {fs['rms_mm'] * 1000:.1f} um, reduced chi-square {fs['chi2_nu']:.2f}"
+              + ("" if fs["converged"] else "   (chains NOT converged: see fit json)"))
+        if rnd == rounds:
+            break
+        diag_json = out / f"diagnose_{tag}.json"
+        r.step(f"{6 + 2 * rnd}. diagnose '{model}': which effect is missing?", [
+            "diagnose", widths, "--manifest", man, "--model", model, "--seed", seed,
+            "-o", diag_json, "--plots", out / f"covariates_{tag}"])
+        diag = json.loads(diag_json.read_text())
+        cands = [c for c in diag.get("candidates", []) if np.isfinite(c.get("delta_bic", np.nan))]
+        if not cands or cands[0]["delta_bic"] < 10:
+            r.say("   no candidate effect improves BIC by 10 or more: the model explains the data.")
+            break
+        model = f"{model}+{cands[0]['effect']}"
+
+    r.say("\n== the error falling")
+    r.say(f"   {'model':36s} {'RMS (um)':>9s} {'chi2_nu':>8s} {'BIC':>12s}")
+    for h in history:
+        r.say(f"   {h['model']:36s} {h['rms_mm'] * 1000:9.1f} {h['chi2_nu']:8.2f} {h['bic']:12.1f}")
+    r.say(f"   (truth: {spec_true})")
+
+    last = out / f"fit_{history[-1]['model'].replace('+', '_')}.json"
+    r.step("export the pressure advance for Klipper", ["export", last, "--to", "klipper"])
+    r.step("the report", ["report", "--widths", widths, "--manifest", man, "--scan", scan,
+                          "--overlay", qa, "--fit", last, "--models", base_model, history[-1]["model"],
+                          "-o", out / "report.html"])
+    summary = {"truth": {"spec": spec_true, "values": values_true}, "measure_error": err,
+               "fits": [{k: v for k, v in h.items() if k != "params"} |
+                        {"medians": {n: p["median"] for n, p in h["params"].items()}} for h in history],
+               "seconds": time.perf_counter() - r.t0}
+    atomic_write_text(out / "demo.json", json.dumps(summary, indent=1))
+    r.say(f"\nall outputs in {out}/ (open report.html); {summary['seconds']:.0f} s")
+    return summary
