@@ -61,6 +61,7 @@ class Registration:
     marker_ids: list = field(default_factory=list)
     marker_corners_px: list = field(default_factory=list)
     track_offset_rms_mm: float = float("nan")
+    marker_bleed: tuple = (0.0, 0.0)
     corner_rms_px: float = float("nan")
     warnings: list = field(default_factory=list)
 
@@ -249,6 +250,25 @@ def _undistorted_homography(bed, img, center, f, k1, k2, ransac: bool):
     return H, (mask.ravel() > 0) if mask is not None else np.ones(len(bed), bool)
 
 
+def _bled(bed, ctr, bleed):
+    """Marker corners (bed mm) as printed: each marker scaled about its centre by
+    (1 + bleed_x, 1 + bleed_y). Raster-printed cells spread or shrink (over/under-extrusion,
+    rounded line ends along x) so the black border looks a little larger or smaller than
+    drawn; a scale about the marker centre leaves the centre, which is what places the
+    pattern, untouched."""
+    return ctr + (bed - ctr) * (1.0 + np.asarray(bleed, float))
+
+
+def _corner_fit(H0, size, bed, img, ctr) -> float:
+    """RMS corner misfit (px) of a pure homography with marker bleed, fitted to the corners."""
+    mp = _Mapping(H0, size, False, bed)
+
+    def res(xx):
+        return (mp.project(xx[:8], _bled(bed, ctr, xx[8:])) - img).ravel()
+    sol = optimize.least_squares(res, np.zeros(10), x_scale="jac", diff_step=1e-6, max_nfev=100)
+    return float(np.sqrt(np.mean(sol.fun ** 2) * 2))
+
+
 # -- layout points and the track-likeness image -------------------------------------------
 def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 4000):
     """Points (N, 2) mm on the centrelines of all extruding tracks, and their widths (mm)."""
@@ -367,6 +387,7 @@ def register(image, manifest, points=None, *, refine: bool = True,
     if len(used) >= 2:
         method = "fiducials"
         bed_pts, img_pts = np.concatenate(bed_c), np.concatenate(img_c)
+        ctr_pts = np.repeat([b.mean(axis=0) for b in bed_c], 4, axis=0)
         if len(used) < 4 and hint_bed is None:
             warnings.append(f"only {len(used)} fiducial(s) found; registration is less certain")
     elif hint_bed is not None:
@@ -390,8 +411,9 @@ def register(image, manifest, points=None, *, refine: bool = True,
         if H0 is None or inl.sum() < 8:
             raise UserError("the fiducials found do not fit one plane mapping; "
                             "photograph the print flat and whole, or give --points")
-        bed_pts, img_pts = bed_pts[inl], img_pts[inl]
-        rms0 = float(np.sqrt(np.mean(np.sum((apply_homography(H0, bed_pts) - img_pts) ** 2, axis=1))))
+        bed_pts, img_pts, ctr_pts = bed_pts[inl], img_pts[inl], ctr_pts[inl]
+        # misfit of a pure homography (plus marker bleed) decides whether the lens distorts
+        rms0 = _corner_fit(H0, size, bed_pts, img_pts, ctr_pts)
     else:
         H0, _ = _undistorted_homography(hint_bed, hint_img, center, f_px, 0, 0, ransac=False)
         if H0 is None:
@@ -414,7 +436,7 @@ def register(image, manifest, points=None, *, refine: bool = True,
 
     if refine:
         x = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale,
-                    (bed_pts, img_pts) if method == "fiducials" else None,
+                    (bed_pts, img_pts, ctr_pts) if method == "fiducials" else None,
                     (hint_bed, hint_img) if hint_bed is not None else None, method)
         method += "+tracks"
         # Polarity again on the refined mapping (the hint start may have been too far off).
@@ -427,7 +449,9 @@ def register(image, manifest, points=None, *, refine: bool = True,
                        marker_corners_px=[c for c in img_c] if used else [], warnings=warnings)
     if method.startswith("fiducials"):
         cam = reg.camera
-        err_px = np.sqrt(np.sum((cam.project(bed_pts) - img_pts) ** 2, axis=1))
+        bleed = x[-2:] if refine else np.zeros(2)
+        reg.marker_bleed = tuple(float(b) for b in bleed)
+        err_px = np.sqrt(np.sum((cam.project(_bled(bed_pts, ctr_pts, bleed)) - img_pts) ** 2, axis=1))
         reg.corner_rms_px = float(np.sqrt(np.mean(err_px ** 2)))
         reg.residual_mm = float(np.sqrt(np.mean((err_px / cam.px_per_mm(bed_pts)) ** 2)))
     return reg
@@ -447,15 +471,25 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
     def prior(xx):
         return [np.array([xx[8] / 0.2, xx[9] / 0.1])] if mp.with_distortion else []  # real lenses: |k1| < ~0.2, |k2| < ~0.1
 
+    nm = 8 + (2 if mp.with_distortion else 0)
+    if corners is not None:
+        x = np.concatenate([x[:nm], [0.0, 0.0]])
+
+    def corner_res(xx):
+        return ((mp.project(xx, _bled(corners[0], corners[2], xx[nm:nm + 2])) - corners[1]) / sig_c).ravel()
+
     if corners is not None and mp.with_distortion:
         # Lens distortion from the corners alone first (k1 only: corners sit at similar
         # radii, where k1 and k2 trade off), to bring the layout within the capture range
         # of the finest track image.
-        def corner_resid(x9):
-            xx = np.concatenate([x9, [0.0]])
-            return np.concatenate([((mp.project(xx, corners[0]) - corners[1]) / sig_c).ravel()] + prior(xx))
-        x = np.concatenate([optimize.least_squares(corner_resid, x[:9], x_scale="jac", diff_step=1e-6,
-                                                   max_nfev=100).x, [0.0]])
+        free = np.ones(len(x), bool)
+        free[9] = False
+
+        def corner_only(xf):
+            xx = x.copy()
+            xx[free] = xf
+            return np.concatenate([corner_res(xx)] + prior(xx))
+        x[free] = optimize.least_squares(corner_only, x[free], x_scale="jac", diff_step=1e-6, max_nfev=100).x
     for sig_mm in ladder_mm:
         sig_px = max(0.7, sig_mm * scale)
         D = _TrackImage(gray, polarity, sig_px, bg_sigma_px=max(3 * sig_px, 2.5 * w_med * scale))
@@ -471,7 +505,7 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
             # gaps or missing beads cost at most a bounded amount (robust like soft-L1).
             r = [wt * (2.0 - 2.0 * np.tanh(D(uv) / 2.0))]
             if corners is not None:
-                r.append(((mp.project(xx, corners[0]) - corners[1]) / sig_c).ravel())
+                r.append(corner_res(xx))
             if hints is not None:
                 r.append(((mp.project(xx, hints[0]) - hints[1]) / (sig_h if corners is None else 10 * sig_h)).ravel())
             return np.concatenate(r + prior(xx))
