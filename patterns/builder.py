@@ -249,7 +249,8 @@ class PatternBuilder:
         if manifest is None:
             manifest = Manifest(printer=self.profile.to_dict(), pattern=pattern,
                                 tracks=self.own_tracks())
-        manifest.pattern = pattern
+        # keep what the planner added (planned_duration_s, warnings), the pattern's own keys win
+        manifest.pattern = {**(manifest.pattern or {}), **pattern}
         for tr in manifest.tracks:
             rec = self._recs.get(tr.id)
             if rec is not None:

@@ -195,6 +195,18 @@ class GcodeWriter:
             raise UserError(f"dwell of {seconds} s is negative")
         self._emit(f"G4 P{ms}")
 
+    def display_message(self, text: str) -> None:
+        """Show ``text`` on the printer's display: ``M117 <text>`` (Marlin, Klipper's
+        display_status and RRF all take M117), preceded by the same text as a comment.
+
+        The text is made firmware-safe: ASCII only, no ``;`` or ``()`` (they start
+        comments), at most 40 characters (longer status lines scroll or are cut).
+        """
+        clean = "".join(c for c in str(text) if 32 <= ord(c) < 127 and c not in ";()").strip()[:40]
+        self.comment(f"display: {clean}")
+        if self.profile.firmware in ("marlin", "klipper", "rrf"):
+            self._emit(f"M117 {clean}" if clean else "M117")
+
     def set_pressure_advance(self, k_s, smooth_time_s=None) -> None:
         """Firmware pressure advance K (s): M900 K / SET_PRESSURE_ADVANCE / M572 D0 S."""
         k = float(k_s)

@@ -1,5 +1,9 @@
 """Top-view preview of a pattern: tracks coloured by commanded volumetric flow (mm^3/s),
-fiducial outlines with their ids, labels and the bed outline. matplotlib, Agg backend."""
+fiducial outlines with their ids, labels and the bed outline. matplotlib, Agg backend.
+
+The PNG is exactly FIGSIZE_IN * dpi pixels square (constrained layout, no tight bbox), so
+callers can map bed mm to image pixels with :func:`render_preview_mapped`.
+"""
 from __future__ import annotations
 
 import io
@@ -7,15 +11,24 @@ import io
 import numpy as np
 
 
+FIGSIZE_IN = 8.0
+
+
 def render_preview(manifest, profile=None, *, dpi: int = 150) -> bytes:
-    """PNG bytes of the top view. Bead widths are drawn to scale (mm) where possible."""
+    """PNG bytes of the top view, FIGSIZE_IN * dpi pixels square; beads drawn at their
+    commanded width (mm, to scale, at least 0.3 pt)."""
+    return render_preview_mapped(manifest, profile, dpi=dpi)[0]
+
+
+def render_preview_mapped(manifest, profile=None, *, dpi: int = 150):
+    """(PNG bytes, to_px): ``to_px(xy_mm (N, 2)) -> (N, 2)`` image pixels (u right, v down)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Polygon, Rectangle
 
-    fig, ax = plt.subplots(figsize=(8, 8))
+    fig, ax = plt.subplots(figsize=(FIGSIZE_IN, FIGSIZE_IN), dpi=dpi, layout="constrained")
     if profile is not None:
         bx, by = profile.bed_x_mm, profile.bed_y_mm
         ax.add_patch(Rectangle((bx[0], by[0]), bx[1] - bx[0], by[1] - by[0], fill=False, lw=1.5,
@@ -31,10 +44,10 @@ def render_preview(manifest, profile=None, *, dpi: int = 150) -> bytes:
                 segs.append(p[i:i + 2])
                 flows.append(max(tr.flow_mm3_s[i], tr.flow_mm3_s[i + 1]))
                 lws.append(w)
-            else:
+            elif tr.kind == "test":     # hops between strokes of furniture are not drawn
                 coast.append(p[i:i + 2])
     qmax = max(flows) if flows else 1.0
-    lc = LineCollection(segs, array=np.asarray(flows), cmap="viridis", linewidths=np.asarray(lws) * 2.0)
+    lc = LineCollection(segs, array=np.asarray(flows), cmap="viridis", linewidths=0.5)
     lc.set_clim(0.0, qmax)
     ax.add_collection(lc)
     if coast:
@@ -55,7 +68,18 @@ def render_preview(manifest, profile=None, *, dpi: int = 150) -> bytes:
     ax.set_aspect("equal")
     if profile is None:
         ax.autoscale_view()
+    # Beads to scale: after a layout pass, 1 mm of bed is known in points (equal aspect).
+    fig.canvas.draw()
+    pt_per_mm = abs(np.diff(ax.transData.transform([[0.0, 0.0], [1.0, 0.0]])[:, 0])[0]) * 72.0 / dpi
+    lc.set_linewidths(np.maximum(np.asarray(lws) * pt_per_mm, 0.3))
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=dpi)
+    trans = ax.transData.frozen()       # after the draw: the final constrained layout
+    height_px = fig.bbox.height
     plt.close(fig)
-    return buf.getvalue()
+
+    def to_px(xy_mm):
+        d = trans.transform(np.asarray(xy_mm, dtype=float).reshape(-1, 2))
+        return np.column_stack([d[:, 0], height_px - d[:, 1]])
+
+    return buf.getvalue(), to_px

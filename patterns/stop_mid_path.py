@@ -14,6 +14,12 @@ q(t) = q0 exp(-t / tau), tau = 32 D^2 L l / d^4 * VE. Variants (one row each):
 * ``const``  the head keeps v0: the ooze width decays as exp(-x / (v0 tau)) along x.
 * ``wizard`` stop, pass the wiper (a fast 10 mm move: hold a card there to cut the
              string), wait 3 s at a fresh spot so the ooze pools into a blob, retract.
+             Where to hold the card: before each wizard line the G-code shows
+             ``M117 Hold card at X<x> Y<y>`` on the printer's display (Marlin, Klipper
+             and RRF all take M117) with the same text as a ``;`` comment, while the
+             steady part prints; (x, y) is the middle of the wipe move, 5 mm past the
+             stop. A ``; WIPER ...`` comment marks the wipe move itself and ``M117 Remove
+             card`` follows the retraction. The track's params hold ``card_xy_mm``.
 
 The coasting part belongs to the track (zero-extrusion moves between TRACK/END_TRACK):
 that is where the ooze is measured.
@@ -78,6 +84,8 @@ def generate(profile, *, speeds_mm_s=(20.0, 40.0), tau_s=None, variants=VARIANTS
                  seed 000 estimate for this printer times 0.5, 1, 2
     variants     any of exp, const, wizard
     steady_s     printing time before the stop (s); default max(2 s, 4 tau), shortened to fit
+    wizard_wait_s  wizard variant: wait after the wipe (s); the display (M117) says where
+                 to hold the wiper card, see the module docstring
     """
     profile = load_profile(profile)
     speeds = [float(v) for v in np.atleast_1d(speeds_mm_s)]
@@ -126,6 +134,10 @@ def generate(profile, *, speeds_mm_s=(20.0, 40.0), tau_s=None, variants=VARIANTS
               "flow_mm3_s": q0 * r["v0"], "stop_s_mm": r["steady_mm"]}
         if r["variant"] != "wizard":
             tp["tau_guess_s"] = r["tau"]
+        else:
+            card = (round(xs + WIPE_MM / 2, 1), round(y, 1))
+            tp["card_xy_mm"] = list(card)
+            b.writer.display_message(f"Hold card at X{card[0]:g} Y{card[1]:g}")
         r["track"] = b.begin("test", (x0, y), group=r["label"], params=tp)
         b.extrude([(x0, y), (xs, y)], w, r["v0"])
         if r["variant"] == "exp":
@@ -134,10 +146,14 @@ def generate(profile, *, speeds_mm_s=(20.0, 40.0), tau_s=None, variants=VARIANTS
         elif r["variant"] == "const":
             b.coast([(xs, y), (xs + r["coast_mm"], y)], r["v0"])
         else:
+            b.writer.comment(f"WIPER: extrusion stopped; the head now wipes across the card held at "
+                             f"X{card[0]:g} Y{card[1]:g} (mm), then waits {wizard_wait_s:g} s and retracts")
             b.coast([(xs, y), (xs + WIPE_MM, y)], profile.travel_speed)
             b.writer.dwell(wizard_wait_s)
             b.retract()
         b.end()
+        if r["variant"] == "wizard":
+            b.writer.display_message("Remove card")
     b.frame_furniture(frame, title="stop-mid-path")
     for r in rows:
         b.label(r["label"], r["label_xy"], height_mm=layout.ROW_LABEL_H_MM, for_tracks=[r["track"]])

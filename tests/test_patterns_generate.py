@@ -139,3 +139,30 @@ def test_font_covers_labels_and_fiducial_bits():
     # Raster lines exactly fill the white area: total printed area = white cells * cell^2.
     area = sum(abs(s[1, 0] - s[0, 0]) + 0.5 for s in fp.strokes_mm) * 0.5
     assert area == pytest.approx(bits.sum() * 4.0)
+
+
+@pytest.mark.parametrize("printer", ["adventurer3", "direct_drive"])
+def test_stop_mid_path_wizard_tells_where_to_hold_the_card(printer):
+    """Before each wizard line: M117 'Hold card at X Y' naming the middle of the wipe move
+    (5 mm past the stop), a WIPER comment right before that wipe move, and 'Remove card'
+    after the retraction; the G-code still parses back to the same tracks."""
+    gcode, m = PATTERNS["stop-mid-path"](load_profile(printer), speeds_mm_s=[20.0], variants=["wizard"])
+    lines = gcode.splitlines()
+    holds = [i for i, ln in enumerate(lines) if ln.startswith("M117 Hold card at X")]
+    tests = m.test_tracks()
+    assert len(holds) == len(tests) == 1
+    tr = tests[0]
+    x, y = (float(v[1:]) for v in lines[holds[0]].split()[-2:])
+    assert [x, y] == tr.params["card_xy_mm"]
+    x_stop = tr.points_mm[0, 0] + tr.params["stop_s_mm"]
+    assert x == pytest.approx(x_stop + 5.0, abs=0.06) and y == pytest.approx(tr.points_mm[0, 1], abs=0.06)
+    # order: message, track label, ... WIPER comment, the zero-E wipe through (x, y), dwell, remove card
+    i_track = next(i for i, ln in enumerate(lines) if ln.startswith(f";TRACK id={tr.id} "))
+    i_wiper = next(i for i, ln in enumerate(lines) if ln.startswith("; WIPER"))
+    i_remove = next(i for i, ln in enumerate(lines) if ln == "M117 Remove card")
+    assert holds[0] < i_track < i_wiper < i_remove
+    wipe = lines[i_wiper + 1]
+    assert wipe.startswith("G1 X") and float(wipe.split("X")[1].split()[0]) > x
+    assert any(ln.startswith("G4 P3000") for ln in lines[i_wiper:i_remove])
+    m2 = manifest_from_gcode(gcode, printer)
+    assert np.allclose(m2.track(tr.id).points_mm, tr.points_mm)

@@ -59,6 +59,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="tau guesses for the feed ramp, s (default: seed-000 estimate x 0.5,1,2)")
     sp.add_argument("--variants", default="exp,const,wizard", help="any of exp,const,wizard (default all)")
     sp.add_argument("--steady-s", type=float, default=None, help="printing time before the stop, s")
+    sp.add_argument("--wizard-wait-s", type=float, default=3.0,
+                    help="wizard variant: wait after the wipe, s (default 3); the printer's display "
+                         "says where to hold the wiper card (M117)")
+    sp.add_argument("--width", type=float, default=None, help="bead width, mm (default 1.2 x nozzle)")
+    sp.add_argument("--layer-height", type=float, default=0.2, help="layer height, mm (default 0.2)")
 
     sp = sub.add_parser("retract", help="steady lines then a moving retraction (seed 001 RetractTest)",
                         description="Seed-001 RetractTest designs: prime/drain/restore, a steady line, then "
@@ -89,17 +94,58 @@ def _kwargs(args) -> dict:
                     layer_height_mm=args.layer_height)
     if args.pattern == "stop-mid-path":
         return dict(speeds_mm_s=args.speeds, tau_s=args.tau, steady_s=args.steady_s,
-                    variants=[v.strip() for v in args.variants.split(",") if v.strip()])
+                    variants=[v.strip() for v in args.variants.split(",") if v.strip()],
+                    wizard_wait_s=args.wizard_wait_s, width_mm=args.width, layer_height_mm=args.layer_height)
     if args.pattern == "retract":
         return dict(designs=args.designs, n_steps=args.steps, draw_mm=args.draw_mm, restore_mm=args.restore_mm)
     return dict(re_mm=args.re_mm, widths_mm=args.widths, ve_mm_s=args.ve, height_mm=args.layer_height,
                 draw_s=args.draw_s)
 
 
-def run(args) -> int:
+def write_error(path, exc: OSError, what: str = "") -> UserError:
+    """One-line UserError for an output that cannot be written (used by plan/preview too)."""
+    path = Path(path)
+    reason = exc.strerror or str(exc)
+    for anc in path.parents:
+        if anc.exists():
+            if not anc.is_dir():
+                reason = f"{anc} is a file, not a folder"
+            break
+    if path.is_dir():
+        reason = "that is a folder"
+    return UserError(f"cannot write {path}{what}: {reason}: choose a writable output path with -o")
+
+
+def _write_all(out: Path, gcode: str, manifest) -> Path:
+    """Write OUT.manifest.json, OUT.timeline.npz, then OUT.gcode (each atomically).
+
+    The G-code goes last, so a printable file never exists without its manifest; if any
+    write fails, the files this run wrote are removed and the failure becomes one
+    UserError line.
+    """
     from calib.fileio import atomic_write_text
+    from patterns.manifest import manifest_path_for, timeline_path_for
+
+    mpath = manifest_path_for(out)
+    written = [timeline_path_for(mpath), mpath, out]
+    try:
+        if out.is_dir():
+            raise IsADirectoryError(21, "Is a directory", str(out))
+        manifest.save(mpath)
+        atomic_write_text(out, gcode)
+    except OSError as exc:
+        for f in written:
+            try:
+                if f.is_file():
+                    f.unlink()
+            except OSError:
+                pass
+        raise write_error(out, exc, " and its manifest") from None
+    return mpath
+
+
+def run(args) -> int:
     from patterns.builder import PATTERNS
-    from patterns.manifest import manifest_path_for
     from patterns.profile import load_profile
 
     out = Path(args.output)
@@ -108,8 +154,7 @@ def run(args) -> int:
     profile = load_profile(args.printer)
     gcode, manifest = PATTERNS[args.pattern](profile, **_kwargs(args))
     manifest.gcode = out.name
-    atomic_write_text(out, gcode)
-    mpath = manifest.save(manifest_path_for(out))
+    mpath = _write_all(out, gcode, manifest)
     n = len(manifest.test_tracks())
     dur = manifest.timeline.duration_s / 60 if manifest.timeline is not None else float("nan")
     print(f"wrote {out} and {mpath}: {n} test tracks, {len(manifest.fiducials)} fiducials, ~{dur:.1f} min")

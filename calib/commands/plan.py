@@ -5,6 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from calib.commands.pattern import write_error
 from calib.errors import UserError
 from patterns.manifest import manifest_path_for, timeline_path_for
 
@@ -51,7 +52,18 @@ def run(args) -> int:
                               min_test_length_mm=args.min_test_length_mm)
     man.gcode = src.name
     out = Path(args.output) if args.output else manifest_path_for(src)
-    man.save(out)
+    try:
+        if out.is_dir():
+            raise IsADirectoryError(21, "Is a directory", str(out))
+        man.save(out)
+    except OSError as exc:
+        for f in (timeline_path_for(out), out):     # no timeline without its manifest
+            try:
+                if f.is_file():
+                    f.unlink()
+            except OSError:
+                pass
+        raise write_error(out, exc) from None
     for w in man.pattern.get("warnings", []):
         print(f"calib plan: warning: {w}", file=sys.stderr)
     n_test = len(man.test_tracks())

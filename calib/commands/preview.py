@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from calib.commands.pattern import write_error
 from calib.errors import UserError
 
 
@@ -47,6 +48,14 @@ def run(args) -> int:
     else:
         raise UserError(f"no manifest {mpath.name} next to {src.name}: pass --printer to plan the G-code")
     out = Path(args.output) if args.output else src.with_suffix(".png")
-    atomic_write_bytes(out, render_preview(manifest, profile, dpi=args.dpi))
+    if not 10 <= args.dpi <= 1200:
+        raise UserError(f"--dpi must be between 10 and 1200, got {args.dpi}")
+    png = render_preview(manifest, profile, dpi=args.dpi)
+    try:
+        if out.is_dir():
+            raise IsADirectoryError(21, "Is a directory", str(out))
+        atomic_write_bytes(out, png)
+    except OSError as exc:
+        raise write_error(out, exc) from None
     print(f"wrote {out}")
     return 0
