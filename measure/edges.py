@@ -145,8 +145,9 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter):
             break
         ta, wa, ra, Ja, pa = t[act], wts[act], r[act], J[act], p[act]
         Jw = Ja * wa[..., None]
-        JTJ = np.einsum("nmi,nmj->nij", Jw, Jw)
-        JTr = np.einsum("nmi,nm->ni", Jw, ra)
+        JtT = Jw.transpose(0, 2, 1)
+        JTJ = JtT @ Jw                       # batched BLAS; einsum is ~5x slower here
+        JTr = (JtT @ ra[..., None])[..., 0]
         diag = np.einsum("nii->ni", JTJ)
         A = JTJ + lam[act, None, None] * (diag[:, :, None] * eye + 1e-12 * eye)
         try:
@@ -172,7 +173,7 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter):
         done = (better & (small | (rel_gain < 1e-9))) | (lam[act] > 1e8)
         act = act[~done]
     Jw = J * wts[..., None]
-    JTJ = np.einsum("nmi,nmj->nij", Jw, Jw)
+    JTJ = Jw.transpose(0, 2, 1) @ Jw
     m_eff = wts.sum(axis=1)
     dof = np.maximum(m_eff - npar, 1)
     var = cost / dof

@@ -265,12 +265,12 @@ def _corner_fit(H0, size, bed, img, ctr) -> float:
 
     def res(xx):
         return (mp.project(xx[:8], _bled(bed, ctr, xx[8:])) - img).ravel()
-    sol = optimize.least_squares(res, np.zeros(10), x_scale="jac", diff_step=1e-6, max_nfev=100)
+    sol = optimize.least_squares(res, np.zeros(10), method="lm", x_scale="jac", diff_step=1e-6, max_nfev=200)
     return float(np.sqrt(np.mean(sol.fun ** 2) * 2))
 
 
 # -- layout points and the track-likeness image -------------------------------------------
-def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 4000):
+def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 2500):
     """Points (N, 2) mm on the centrelines of all extruding tracks, and their widths (mm)."""
     pts, wid = [], []
     total = sum(tr.length_mm for tr in manifest.tracks if tr.kind != "label")
@@ -489,7 +489,8 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
             xx = x.copy()
             xx[free] = xf
             return np.concatenate([corner_res(xx)] + prior(xx))
-        x[free] = optimize.least_squares(corner_only, x[free], x_scale="jac", diff_step=1e-6, max_nfev=100).x
+        x[free] = optimize.least_squares(corner_only, x[free], method="lm", x_scale="jac", diff_step=1e-6,
+                                          max_nfev=200).x
     for sig_mm in ladder_mm:
         sig_px = max(0.7, sig_mm * scale)
         D = _TrackImage(gray, polarity, sig_px, bg_sigma_px=max(3 * sig_px, 2.5 * w_med * scale))
@@ -510,6 +511,6 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
                 r.append(((mp.project(xx, hints[0]) - hints[1]) / (sig_h if corners is None else 10 * sig_h)).ravel())
             return np.concatenate(r + prior(xx))
 
-        sol = optimize.least_squares(resid, x, x_scale="jac", diff_step=1e-6, max_nfev=60)
+        sol = optimize.least_squares(resid, x, method="lm", x_scale="jac", diff_step=1e-6, max_nfev=120)
         x = sol.x
     return x
