@@ -33,7 +33,7 @@ from measure.table import WidthTable
 from patterns.manifest import Manifest, Samples, sample_points
 
 #: Multiplies the fit sd; from bench_measure coverage on renders (68 % target).
-SD_CALIBRATION = 1.0
+SD_CALIBRATION = 0.85
 #: Edge-model error added in quadrature (px), e.g. rounding of the bead shoulder.
 SD_FLOOR_PX = 0.03
 #: Profile step (px) aimed for; the fit is insensitive below ~0.5 px.
@@ -166,6 +166,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     sd[is_missing] = 1.0 / ppm_n[is_missing]    # a bead narrower than ~1 px would not be seen
     c[is_missing] = 0.0
     valid = flag == ""
+    sd = sd * _scatter_factor(smp.track, w, sd, valid)
     w = np.where(np.isfinite(w), w, np.nan)
     sd = np.where(np.isfinite(sd), sd, np.nan)
     table = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
@@ -173,6 +174,24 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     return WidthMeasurement(table=table, centre_mm=c, blur_mm=fit.params[:, 5], amplitude=fit.amplitude,
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else ())
+
+
+def _scatter_factor(track, w, sd, valid) -> float:
+    """Factor >= 1 on the fit sd so that it explains the observed station-to-station scatter.
+
+    Second differences d2 = w[i-1] - 2 w[i] + w[i+1] along a track remove the smooth
+    (physical) width changes; for independent errors var(d2) = 6 sd^2. The fit sd misses
+    correlated noise (JPEG blocks, texture), which shows up here. Robust (MAD) so steps
+    and blobs do not count.
+    """
+    same = (track[1:-1] == track[:-2]) & (track[1:-1] == track[2:])
+    ok = same & valid[1:-1] & valid[:-2] & valid[2:]
+    if ok.sum() < 30:
+        return 1.0
+    d2 = (w[:-2] - 2 * w[1:-1] + w[2:])[ok]
+    observed = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)
+    predicted = np.median(sd[1:-1][ok])
+    return float(max(1.0, observed / predicted)) if predicted > 0 else 1.0
 
 
 # -- helpers -----------------------------------------------------------------------------

@@ -1,0 +1,44 @@
+"""The batched edge-pair fit recovers known parameters with an honest covariance."""
+import numpy as np
+import pytest
+
+from measure.edges import edge_pair, fit_profiles, initial_guess
+
+
+def _profiles(n, polarity, noise, rng, s=0.03):
+    w = rng.uniform(0.25, 1.6, n)
+    half = w / 2 + np.maximum(0.5, w)
+    t = np.linspace(-1, 1, 100)[None] * half[:, None]
+    p = np.column_stack([np.full(n, 0.5), np.full(n, 0.03), np.full(n, 0.35 * polarity),
+                         rng.normal(0, 0.03, n), w, np.full(n, s)])
+    return t, edge_pair(t, p) + rng.normal(0, noise, t.shape), p
+
+
+@pytest.mark.parametrize("polarity", [1.0, -1.0])
+def test_noiseless_profiles_are_fitted_exactly(polarity):
+    t, y, p = _profiles(200, polarity, 0.0, np.random.default_rng(1))
+    fit = fit_profiles(t, y, initial_guess(t, y, polarity, 0.05))
+    assert fit.ok.all()
+    np.testing.assert_allclose(fit.width, p[:, 4], atol=1e-6)
+    np.testing.assert_allclose(fit.centre, p[:, 3], atol=1e-6)
+    np.testing.assert_allclose(fit.params[:, 5], p[:, 5], atol=1e-5)
+
+
+def test_width_sd_covers_68_percent_of_true_errors():
+    rng = np.random.default_rng(2)
+    t, y, p = _profiles(3000, 1.0, 0.02, rng)
+    fit = fit_profiles(t, y, initial_guess(t, y, 1.0, 0.05))
+    z = (fit.width - p[:, 4]) / fit.width_sd
+    assert np.mean(np.abs(z) < 1) == pytest.approx(0.683, abs=0.03)
+    assert abs(np.mean(fit.width - p[:, 4])) < 3 * np.std(fit.width - p[:, 4]) / np.sqrt(3000)
+
+
+def test_fixed_blur_is_kept_and_reduces_narrow_bead_scatter():
+    rng = np.random.default_rng(3)
+    t, y, p = _profiles(1500, 1.0, 0.03, rng, s=0.06)
+    p0 = initial_guess(t, y, 1.0, 0.06)
+    free = fit_profiles(t, y, p0)
+    fixed = fit_profiles(t, y, p0, fixed_s=True)
+    assert np.all(fixed.params[:, 5] == 0.06)
+    narrow = p[:, 4] < 0.4
+    assert np.std((fixed.width - p[:, 4])[narrow]) < 0.8 * np.std((free.width - p[:, 4])[narrow])
