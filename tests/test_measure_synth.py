@@ -129,3 +129,42 @@ def test_drawn_track_has_its_width_at_half_maximum(w):
     half = 0.5 * (col.max() + np.median(col))
     above = np.flatnonzero(col[int(v) - 60:int(v) + 60] > half)
     assert (above[-1] - above[0] + 1) / (600 / 25.4 * 1.006) == pytest.approx(w, abs=0.05)
+
+
+# -- renders through measure.render (the project's renderer), cached across test files ----
+import functools
+
+
+@functools.lru_cache(maxsize=None)
+def rendered(kind: str, seed: int = 1, with_fiducials: bool = True):
+    """(manifest, Rendered) of the scene: "flat" (400 dpi, turned 20 deg, dark plate),
+    "flat-mirror-light" (face down, dark plastic on a light plate), "phone" (25 deg tilt,
+    barrel distortion, JPEG 85), "phone-translucent" (light plate, translucent plastic)."""
+    from measure.render import render
+    man = scene_manifest(with_fiducials=with_fiducials)
+    reg = scene_region(man)
+    if kind == "flat":
+        cam, kw = Camera.flatbed(reg, dpi=400, rotation_deg=20), dict(plate="dark")
+    elif kind == "flat-mirror-light":
+        cam, kw = Camera.flatbed(reg, dpi=400, mirrored=True), dict(plate="light")
+    elif kind == "phone":
+        cam, kw = Camera.phone(reg, image_size=(2000, 1500), tilt_deg=25, yaw_deg=5, k1=-0.06, k2=0.01), \
+            dict(jpeg_quality=85)
+    elif kind == "phone-translucent":
+        cam, kw = Camera.phone(reg, image_size=(2000, 1500), tilt_deg=25, yaw_deg=-5, k1=-0.05, k2=0.0), \
+            dict(jpeg_quality=85, plate="light", plastic="translucent")
+    else:
+        raise ValueError(kind)
+    return man, render(man, None, cam, seed=seed, **kw)
+
+
+def gray_of(r):
+    return cv2.cvtColor(r.image, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+
+
+def true_registration_error_mm(reg, r):
+    """RMS distance (mm) between the estimated and the true mapping along the test tracks."""
+    tr = r.table
+    p = np.column_stack([tr.x_mm, tr.y_mm])
+    cam = r.camera
+    return float(np.sqrt(np.mean((np.hypot(*(reg.project(p) - cam.project(p)).T) / cam.px_per_mm(p)) ** 2)))

@@ -1,0 +1,80 @@
+"""Registration on renders: rotated, mirrored, tilted + distorted, light/dark, point hints."""
+import numpy as np
+import pytest
+
+from calib.errors import UserError
+from measure.register import parse_points, register
+from test_measure_synth import gray_of, rendered, scene_manifest, true_registration_error_mm
+
+
+@pytest.mark.parametrize("kind, max_err_mm, mirrored, polarity", [
+    ("flat", 0.01, False, 1.0),                 # turned 20 deg on the glass
+    ("flat-mirror-light", 0.02, True, -1.0),    # face down, dark plastic on a light plate
+    ("phone", 0.02, False, 1.0),                # 25 deg tilt, barrel distortion, JPEG
+    ("phone-translucent", 0.02, False, -1.0),
+])
+def test_fiducial_registration_matches_the_true_camera(kind, max_err_mm, mirrored, polarity):
+    man, r = rendered(kind)
+    reg = register(gray_of(r), man)
+    assert reg.n_markers == 4 and reg.mirrored == mirrored and reg.polarity == polarity
+    err = true_registration_error_mm(reg, r)
+    assert err < max_err_mm
+    # the reported residual is of the same order as the true error (not hiding a 10x miss)
+    assert reg.residual_mm < 0.05 and err < 10 * reg.residual_mm + 0.005
+
+
+def test_phone_distortion_is_estimated():
+    man, r = rendered("phone")
+    reg = register(gray_of(r), man)
+    cam = r.camera
+    # the displacement the lens causes at the pattern's far corner is recovered within 15 %
+    uv = cam.project(np.array([[cam.info["bed_region_mm"][2], cam.info["bed_region_mm"][3]]]))
+    rn2 = np.sum(((uv - cam.center_px) / cam.f_px) ** 2)
+    true_shift = cam.f_px * np.sqrt(rn2) * (cam.k1 * rn2 + cam.k2 * rn2 ** 2)
+    d = reg.distortion
+    rr2 = np.sum(((uv - np.asarray(d["center_px"])) / d["f_px"]) ** 2)
+    est_shift = d["f_px"] * np.sqrt(rr2) * (d["k1"] * rr2 + d["k2"] * rr2 ** 2)
+    assert est_shift == pytest.approx(true_shift, rel=0.15)
+
+
+def test_point_hints_register_a_print_without_fiducials():
+    man, r = rendered("phone", with_fiducials=False)
+    bed = np.array([[20, 20], [80, 20], [80, 45], [20, 45.0]])
+    img = r.camera.project(bed) + np.random.default_rng(0).normal(0, 3.0, (4, 2))   # clicks off by ~3 px
+    text = ";".join(f"{b[0]:g},{b[1]:g}={u[0]:.1f},{u[1]:.1f}" for b, u in zip(bed, img))
+    reg = register(gray_of(r), man, points=text)
+    assert reg.method == "points+tracks"
+    # straight parallel tracks fix the mapping across them; along them only the ends do
+    assert true_registration_error_mm(reg, r) < 0.25
+
+
+def test_wrong_pattern_and_missing_fiducials_are_user_errors():
+    man, r = rendered("flat")
+    other = scene_manifest()
+    for f in other.fiducials:
+        f.id += 10
+    with pytest.raises(UserError, match=r"shows ArUco marker\(s\) \[0, 1, 2, 3\] but the manifest expects "
+                                        r"\[10, 11, 12, 13\]: is it a picture of another pattern\?"):
+        register(gray_of(r), other)
+    man_nf, r_nf = rendered("phone", with_fiducials=False)
+    with pytest.raises(UserError, match="found 0 of the pattern's 4 fiducials"):
+        register(gray_of(r_nf), man)
+    with pytest.raises(UserError, match=r"the manifest has no fiducials \(third-party print\); give >= 4"):
+        register(gray_of(r_nf), man_nf)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("1,2=3,4;5,6=7,8", r"2 point pair\(s\) given, at least 4 are needed"),
+    ("1,2=3;5,6=7,8;1,1=2,2;3,3=4,4", r"cannot read '1,2=3'"),
+    ("0,0=1,1;1,1=2,2;2,2=3,3;3,3=4,4", "the bed points are \\(nearly\\) on one line"),
+])
+def test_bad_point_hints(text, message):
+    with pytest.raises(UserError, match=message):
+        parse_points(text)
+
+
+def test_hints_that_miss_the_image_are_rejected():
+    man, r = rendered("phone", with_fiducials=False)
+    far = "20,20=90000,90000;80,20=91000,90000;80,45=91000,91000;20,45=90000,91000"
+    with pytest.raises(UserError, match=r"only 0% of the pattern's tracks fall inside the image"):
+        register(gray_of(r), man, points=far)
