@@ -1,0 +1,80 @@
+"""Width accuracy, honest uncertainty and flags on renders with known widths."""
+import numpy as np
+import pytest
+
+from measure.register import register
+from measure.table import WidthTable
+from measure.widths import measure_widths
+from patterns.manifest import Track, sample_points
+from test_measure_synth import gray_of, rendered, scene_manifest, scene_region
+
+
+@pytest.fixture(scope="module")
+def flat():
+    man, r = rendered("flat")
+    g = gray_of(r)
+    return man, r, measure_widths(g, man, register(g, man), color=r.image)
+
+
+def test_flatbed_widths_are_right_across_0_25_to_1_6_mm(flat):
+    man, r, wm = flat
+    tb, tr = wm.table, r.table
+    assert tb.valid.mean() > 0.97
+    for tid in range(6):
+        on = tb.valid & (tb.track == tid)
+        e = tb.width_mm[on] - tr.width_mm[on]
+        assert abs(e.mean()) < 0.003, tid             # 400 dpi: 1 px = 0.064 mm
+        assert np.sqrt(np.mean(e ** 2)) < 0.008, tid
+
+
+@pytest.mark.parametrize("kind", ["flat", "phone", "phone-translucent"])
+def test_width_sd_is_honest(kind):
+    man, r = rendered(kind)
+    g = gray_of(r)
+    tb = measure_widths(g, man, register(g, man), color=r.image).table
+    z = (tb.width_mm - r.table.width_mm)[tb.valid] / tb.width_sd_mm[tb.valid]
+    assert 0.6 < np.mean(np.abs(z) < 1) < 0.85
+    assert np.mean(np.abs(z) < 3) > 0.97
+
+
+def test_missing_bead_is_width_zero_and_flagged():
+    man = scene_manifest()
+    from measure.camera import Camera
+    from measure.render import render
+    smp = sample_points(man)
+    w = smp.width_nominal_mm.copy()
+    gone = (smp.track == 3) & (smp.s_mm > 20) & (smp.s_mm < 30)
+    w[gone] = 0.0
+    truth = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                       width_mm=w, width_sd_mm=np.zeros(len(w)), valid=np.ones(len(w), bool))
+    cam = Camera.flatbed(scene_region(man), dpi=300)
+    r = render(man, truth, cam, seed=4)
+    g = gray_of(r)
+    tb = measure_widths(g, man, register(g, man)).table
+    inner = gone & (smp.s_mm > 21) & (smp.s_mm < 29)
+    assert np.all(tb.flag[inner] == "missing") and np.all(tb.width_mm[inner] == 0) and not tb.valid[inner].any()
+    far = (smp.track == 3) & ((smp.s_mm < 18) | (smp.s_mm > 32))
+    assert tb.valid[far].mean() > 0.95
+
+
+def test_crossings_neighbours_and_fiducials_are_flagged():
+    man = scene_manifest()
+    # a test track crossing the others at x = 50, and one hugging track 0 with a 0.175 mm gap
+    man.tracks.append(Track(id=20, kind="test", points_mm=[[50, 16], [50, 48]], width_mm=0.4,
+                            height_mm=0.2, flow_mm3_s=1.0))
+    man.tracks.append(Track(id=21, kind="test", points_mm=[[30, 19.5], [40, 19.5]], width_mm=0.4,
+                            height_mm=0.2, flow_mm3_s=1.0))
+    man.tracks.append(Track(id=22, kind="test", points_mm=[[6, 14.5], [6, 16]], width_mm=0.4,
+                            height_mm=0.2, flow_mm3_s=1.0))     # just above fiducial 3's quiet frame
+    from measure.camera import Camera
+    from measure.render import render
+    r = render(man, None, Camera.flatbed(scene_region(man), dpi=300), seed=5)
+    g = gray_of(r)
+    tb = measure_widths(g, man, register(g, man)).table
+    at_cross = (tb.track == 2) & (np.abs(tb.x_mm - 50) < 0.3)
+    assert set(tb.flag[at_cross]) == {"crossing"}
+    beside = (tb.track == 21) & (tb.s_mm > 1) & (tb.s_mm < 9)
+    assert set(tb.flag[beside]) == {"neighbour"} and not tb.valid[beside].any()
+    assert "fiducial" in set(tb.flag[tb.track == 22])
+    clear = (tb.track == 4) & (np.abs(tb.x_mm - 50) > 3)
+    assert tb.valid[clear].mean() > 0.97
