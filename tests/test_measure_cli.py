@@ -1,0 +1,70 @@
+"""`calib measure` end to end: outputs, and one line + exit 2 + no CSV for every bad input."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.cli import main
+from measure.table import WidthTable
+from test_measure_synth import rendered, scene_manifest
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scan")
+    man, r = rendered("flat")
+    man.save(d / "p.manifest.json")
+    cv2.imwrite(str(d / "scan.png"), r.image)
+    return d, r
+
+
+def test_measure_writes_csv_overlay_and_summary(scan, capsys):
+    d, r = scan
+    rc = main(["measure", str(d / "scan.png"), "--manifest", str(d / "p.manifest.json"), "-o", str(d / "w.csv"),
+               "--overlay", str(d / "qa.png"), "--summary", str(d / "s.json")])
+    assert rc == 0
+    tb = WidthTable.load(d / "w.csv")
+    assert len(tb) == len(r.table)
+    e = (tb.width_mm - r.table.width_mm)[tb.valid]
+    assert np.sqrt(np.mean(e ** 2)) < 0.01
+    s = json.loads((d / "s.json").read_text())
+    assert s["registration"]["residual_mm"] < 0.05 and s["fraction_valid"] > 0.95
+    assert s["registration"]["marker_ids"] == [0, 1, 2, 3] and s["samples"] == len(tb)
+    qa = cv2.imread(str(d / "qa.png"))
+    assert qa is not None and max(qa.shape[:2]) <= 2400
+    assert "valid, registration residual" in capsys.readouterr().err
+
+
+def _run_bad(d, scan_name, capsys, *extra, manifest="p.manifest.json"):
+    out = d / "bad.csv"
+    rc = main(["measure", str(d / scan_name), "--manifest", str(d / manifest), "-o", str(out), *extra])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and not out.exists() and len(err.splitlines()) == 1
+    return err
+
+
+def test_bad_inputs_exit_2_with_one_line_and_no_csv(scan, capsys):
+    d, r = scan
+    (d / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0" + b"\x00" * 100)
+    cv2.imwrite(str(d / "blank.png"), np.full((300, 300), 40, np.uint8))
+    hidden = r.image.copy()        # markers painted over with plate colour
+    man, _ = rendered("flat")
+    for f in man.fiducials:
+        c = np.asarray(f.corners_mm)
+        q = r.camera.project(np.vstack([c.min(axis=0) - 3, [c[:, 0].max() + 3, c[:, 1].min() - 3],
+                                        c.max(axis=0) + 3, [c[:, 0].min() - 3, c[:, 1].max() + 3]]))
+        cv2.fillPoly(hidden, [q.astype(np.int32)], (30, 30, 30))
+    cv2.imwrite(str(d / "nomarkers.png"), hidden)
+    other = scene_manifest()
+    for f in other.fiducials:
+        f.id += 20
+    other.save(d / "other.manifest.json")
+    assert "is a corrupt or truncated JPEG file" in _run_bad(d, "corrupt.jpg", capsys)
+    assert "is blank (uniform grey level" in _run_bad(d, "blank.png", capsys)
+    assert "found 0 of the pattern's 4 fiducials" in _run_bad(d, "nomarkers.png", capsys)
+    assert "is it a picture of another pattern?" in _run_bad(d, "scan.png", capsys, manifest="other.manifest.json")
+    msg = _run_bad(d, "scan.png", capsys, "--max-residual-mm", "0.00001")
+    assert "is above --max-residual-mm 1e-05" in msg
+    assert "manifest" in _run_bad(d, "scan.png", capsys, manifest="missing.manifest.json")
+    assert "at least 4 are needed" in _run_bad(d, "scan.png", capsys, "--points", "1,2=3,4")
