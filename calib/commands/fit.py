@@ -1,0 +1,150 @@
+"""`calib fit`: posterior of a composition of effects from measured widths.
+
+    calib fit widths.csv --manifest OUT.manifest.json --model pa+thermal -o fit.json
+    calib fit --data a.csv a.manifest.json --data b.csv b.manifest.json --model pa -o fit.json
+
+Exit codes: 0 converged, 2 bad input, 3 the sampler did not converge (fit.json is still
+written, with ``converged: false`` and the reason).
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from calib.errors import UserError
+
+EXIT_NOT_CONVERGED = 3
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "fit", help="fit extruder physics to measured widths (posterior with emcee)",
+        description="Fit a model (effects joined by '+', e.g. pa+thermal) to a widths CSV and the "
+                    "manifest that printed it: MAP, then an emcee posterior that stops on the "
+                    "autocorrelation time. Writes fit.json (medians, 68/95 %% intervals, "
+                    "diagnostics, BIC, PSIS-LOO, derived firmware values). Several --data pairs "
+                    "make a joint fit (shared physics, per-scan flow gain and bed tilt). Exit code "
+                    "3 when the sampler did not converge.")
+    p.add_argument("widths", nargs="?", help="widths CSV from `calib measure`")
+    p.add_argument("--manifest", help="manifest JSON the widths were measured against")
+    p.add_argument("--data", nargs=2, action="append", metavar=("WIDTHS", "MANIFEST"), default=[],
+                   help="a widths/manifest pair; repeat for a joint fit")
+    p.add_argument("--model", default="pa", help="effects joined by '+' (default: pa)")
+    p.add_argument("--priors", help="TOML file overriding parameter priors (see fit/priors.py)")
+    p.add_argument("--effects", help="Python file with user Effect classes")
+    p.add_argument("--student-t", type=float, default=None, metavar="NU",
+                   help="Student-t noise with NU degrees of freedom (robust to outliers)")
+    p.add_argument("--no-ar1", action="store_true", help="treat samples as independent (not advised)")
+    p.add_argument("--max-steps", type=int, default=20000, help="cap on MCMC steps (default 20000)")
+    p.add_argument("--max-time", type=float, default=None, metavar="S", help="cap on wall time (s)")
+    p.add_argument("--map-only", action="store_true", help="only the MAP fit (fast, no posterior)")
+    p.add_argument("--jobs", type=int, default=1, help="threads for the physics kernel (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("-o", "--out", default="fit.json", help="output fit.json (default fit.json)")
+    p.add_argument("--plots", metavar="DIR", help="write width/residual and corner plots here")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def data_pairs(args) -> list[tuple[str, str]]:
+    pairs = [tuple(d) for d in args.data]
+    if args.widths:
+        if not args.manifest:
+            raise UserError("give the manifest with --manifest OUT.manifest.json "
+                            "(or use --data WIDTHS MANIFEST)")
+        pairs.insert(0, (args.widths, args.manifest))
+    elif args.manifest:
+        raise UserError("--manifest given without a widths CSV")
+    if not pairs:
+        raise UserError("no data: give widths.csv --manifest M.json, or --data WIDTHS MANIFEST")
+    return pairs
+
+
+def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=None, ar1=True,
+            max_steps=20000, max_time_s=None, seed=0, progress=True, map_only=False):
+    """Load, fit and return (FitResult or MapResult, JointProblem). Shared with `calib batch`."""
+    from fit.data import FitData
+    from fit.derived import derived_values
+    from fit.likelihood import NoiseOptions
+    from fit.priors import load_priors_file
+    from fit.sampler import fit_map, fit_mcmc, make_problem
+
+    extra = ()
+    if effects:
+        from fit.effects import load_effects_file
+        extra = tuple(load_effects_file(effects))
+    data = FitData.load(pairs)
+    overrides = load_priors_file(priors) if priors else None
+    noise = NoiseOptions(ar1=ar1, student_nu=student_nu)
+    problem = make_problem(model_spec, data, noise, overrides, extra)
+    m = fit_map(problem, seed=seed)
+    if map_only:
+        return m, problem
+    res = fit_mcmc(problem, map_result=m, max_steps=max_steps, max_time_s=max_time_s, seed=seed,
+                   progress=progress)
+    res.model = model_spec
+    res.map.model = model_spec
+    res.derived = derived_values(res.param_names, res.samples, res.profile)
+    return res, problem
+
+
+def run(args) -> int:
+    pairs = data_pairs(args)
+    for w, m in pairs:
+        for f in (w, m):
+            if not Path(f).exists():
+                raise UserError(f"{f} does not exist")
+    if args.max_steps < 1:
+        raise UserError("--max-steps must be >= 1")
+    if args.jobs > 1:
+        try:
+            import numba
+            numba.set_num_threads(min(args.jobs, numba.config.NUMBA_NUM_THREADS))
+        except Exception:
+            pass
+    res, problem = run_fit(pairs, args.model, priors=args.priors, effects=args.effects,
+                           student_nu=args.student_t, ar1=not args.no_ar1,
+                           max_steps=args.max_steps, max_time_s=args.max_time, seed=args.seed,
+                           progress=not args.quiet, map_only=args.map_only)
+    if args.map_only:
+        import json
+        from calib.fileio import atomic_write_text
+        atomic_write_text(args.out, json.dumps({"schema": "calib.fit-map/1", **res.to_json()}, indent=1))
+        for n, v in res.values.items():
+            print(f"{n:32s} {v:.6g}")
+        return 0
+    res.save(args.out)
+    print(summary_text(res))
+    if args.plots:
+        from fit.plots import plot_fit
+        for f in plot_fit(res, problem, args.plots):
+            print(f"plot: {f}")
+    print(f"wrote {args.out}")
+    if not res.converged:
+        print(f"calib fit: {res.diagnostics.get('warning', 'not converged')}", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
+    return 0
+
+
+def summary_text(res) -> str:
+    lines = [f"model {res.model}: {res.map.n_obs} samples, rms {res.map.rms_mm * 1000:.1f} um, "
+             f"chi2_nu {res.map.chi2_nu:.2f}, BIC {res.map.bic:.1f}, "
+             f"elpd_loo {res.loo.get('elpd_loo', float('nan')):.1f}",
+             f"{'parameter':32s} {'median':>10s} {'68% interval':>24s} {'95% interval':>24s}"]
+    for n, p in res.params.items():
+        lines.append(f"{n:32s} {p.median:10.5g} [{p.ci68[0]:10.5g}, {p.ci68[1]:10.5g}] "
+                     f"[{p.ci95[0]:10.5g}, {p.ci95[1]:10.5g}]")
+    d = res.diagnostics
+    lines.append(f"sampler: {d['n_steps']} steps x {d['n_walkers']} walkers x {d['n_ensembles']} "
+                 f"ensembles, max tau {max(d['tau_steps'].values()):.1f}, acceptance "
+                 f"{d['acceptance_fraction']:.2f}, max R-hat {max(d['rhat'].values()):.4f}, "
+                 f"{'converged' if res.converged else 'NOT CONVERGED'}")
+    fw = res.derived.get("firmware")
+    if fw:
+        pa = res.derived["pressure_advance_s"]
+        lines.append(f"pressure advance {pa['median']:.4f} s (95 % {pa['ci95'][0]:.4f}-{pa['ci95'][1]:.4f}):"
+                     f"  {fw['klipper']}  |  {fw['marlin']}  |  {fw['rrf']}")
+    ve = res.derived.get("kisslicer_ve_us")
+    if ve:
+        lines.append(f"KISSlicer VE {ve['median']:.3f} us (95 % {ve['ci95'][0]:.3f}-{ve['ci95'][1]:.3f})")
+    return "\n".join(lines)

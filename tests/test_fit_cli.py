@@ -1,0 +1,90 @@
+"""`calib fit` / `calib export` on a small virtual print (direct drive, pa): bad input gives
+one-line errors with exit code 2, a capped sampler exit code 3, export edits profiles."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calib.cli import main
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    from fit.model import build_model
+    from fit.virtual import print_virtual
+    from patterns import spiral_step
+    from patterns.profile import load_profile
+
+    d = tmp_path_factory.mktemp("fitcli")
+    prof = load_profile("direct_drive")
+    _, man = spiral_step.generate(prof, speeds_mm_s=(20.0,), n_steps=4, step_s=(3.0,))
+    mp = man.save(d / "a.manifest.json")
+    t = print_virtual(man, build_model("pa", prof), {"pa.tau_s": 0.05}).table
+    rng = np.random.default_rng(0)
+    t.width_sd_mm[:] = 0.01
+    t.width_mm = t.width_mm + 0.01 * rng.standard_normal(len(t))
+    w = t.save(d / "a.csv")
+    return d, w, mp, t
+
+
+def test_capped_sampler_is_flagged_and_exit_code_3(scan, capsys):
+    d, w, mp, _ = scan
+    out = d / "fit.json"
+    rc = main(["fit", str(w), "--manifest", str(mp), "--model", "pa", "--max-steps", "150",
+               "--quiet", "-o", str(out)])
+    assert rc == 3
+    doc = json.loads(out.read_text())
+    assert doc["converged"] is False and "NOT CONVERGED" in doc["diagnostics"]["warning"]
+    # even a short run puts tau near the truth (0.05 s)
+    assert doc["params"]["pa.tau_s"]["median"] == pytest.approx(0.05, rel=0.05)
+    assert float(doc["derived"]["firmware"]["marlin"].split("K")[1]) == pytest.approx(0.05, rel=0.05)
+    # export: orca filament JSON (string array) updated in place with a backup
+    prof = d / "filament.json"
+    prof.write_text(json.dumps({"name": "PLA", "pressure_advance": ["0.02"]}))
+    assert main(["export", str(out), "--to", "orca", "--profile", str(prof)]) == 0
+    new = json.loads(prof.read_text())
+    assert new["pressure_advance"][0].startswith("0.0") and float(new["pressure_advance"][0]) == \
+        pytest.approx(0.05, rel=0.05)
+    assert len(list(d.glob("filament.json.bak-*"))) == 1
+    cfg = d / "printer.cfg"
+    cfg.write_text("[printer]\nkinematics: cartesian\n[extruder]\nstep_pin: PB3\npressure_advance: 0.5\n")
+    assert main(["export", str(out), "--to", "klipper", "--profile", str(cfg)]) == 0
+    txt = cfg.read_text()
+    assert "pressure_advance: 0.5\n" not in txt and txt.count("pressure_advance:") == 1
+
+
+def test_empty_csv_is_a_user_error(scan, capsys):
+    d, w, mp, _ = scan
+    e = d / "empty.csv"
+    e.write_text("")
+    assert main(["fit", str(e), "--manifest", str(mp), "-o", str(d / "x.json")]) == 2
+    err = capsys.readouterr().err
+    assert "is empty" in err and err.count("\n") == 1
+
+
+def test_nan_width_is_a_user_error(scan, capsys):
+    d, w, mp, t = scan
+    bad = t.subset(np.ones(len(t), bool))
+    bad.width_mm[5] = np.nan
+    p = d / "nan.csv"
+    p.write_text(bad.to_csv_text())
+    assert main(["fit", str(p), "--manifest", str(mp), "-o", str(d / "x.json")]) == 2
+    assert "NaN" in capsys.readouterr().err
+
+
+def test_manifest_that_does_not_match_is_a_user_error(scan, capsys):
+    d, w, mp, t = scan
+    moved = t.subset(np.ones(len(t), bool))
+    moved.x_mm = moved.x_mm + 30.0
+    p = d / "moved.csv"
+    moved.save(p)
+    assert main(["fit", str(p), "--manifest", str(mp), "-o", str(d / "x.json")]) == 2
+    assert "different manifest" in capsys.readouterr().err
+    other = t.subset(np.ones(len(t), bool))
+    other.track = other.track + 100
+    p2 = d / "other.csv"
+    other.save(p2)
+    assert main(["fit", str(p2), "--manifest", str(mp), "-o", str(d / "x.json")]) == 2
+    assert "not in the manifest" in capsys.readouterr().err
