@@ -88,3 +88,32 @@ def test_manifest_that_does_not_match_is_a_user_error(scan, capsys):
     other.save(p2)
     assert main(["fit", str(p2), "--manifest", str(mp), "-o", str(d / "x.json")]) == 2
     assert "not in the manifest" in capsys.readouterr().err
+
+
+def test_batch_on_local_dask_cluster(scan, tmp_path):
+    """Two scans of different printers' tau fitted on a LocalCluster; summary has both."""
+    from dask.distributed import LocalCluster
+
+    from calib.commands.batch import run_batch, summary_csv
+    from fit.model import build_model
+    from fit.virtual import print_virtual
+    from patterns.manifest import Manifest
+    from patterns.profile import load_profile
+
+    d, w, mp, t = scan
+    man = Manifest.load(mp)
+    for name, tau in (("p1", 0.03), ("p2", 0.08)):
+        man.save(tmp_path / f"{name}.manifest.json")
+        tt = print_virtual(man, build_model("pa", load_profile("direct_drive")), {"pa.tau_s": tau}).table
+        rng = np.random.default_rng(1)
+        tt.width_sd_mm[:] = 0.01
+        tt.width_mm = tt.width_mm + 0.01 * rng.standard_normal(len(tt))
+        tt.save(tmp_path / f"{name}.csv")
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+        rows = run_batch(tmp_path, "pa", scheduler=c.scheduler_address, max_steps=300,
+                         progress=False)
+    assert [r["scan"] for r in rows] == ["p1", "p2"]
+    assert rows[0]["pa.tau_s"] == pytest.approx(0.03, rel=0.08)
+    assert rows[1]["pa.tau_s"] == pytest.approx(0.08, rel=0.08)
+    assert (tmp_path / "p1.fit.json").exists()
+    assert summary_csv(rows).splitlines()[0].startswith("scan,")
