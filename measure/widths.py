@@ -18,7 +18,9 @@ Stations are flagged, never silently used (valid = 0 and a reason): ``edge`` (pr
 the image), ``crossing`` / ``neighbour`` (another track touches the bead or sits inside
 the profile window, from the manifest geometry), ``label`` / ``fiducial`` / ``ruler``
 (the same for printed furniture), ``glare`` (saturated pixels on the bead), ``missing``
-(no bead: width 0), ``fit`` (failed or implausible fit), ``blob`` (far wider than commanded).
+(no bead: width 0), ``fit`` (failed or implausible fit, or far noisier than the rest of its track: a logo,
+scratch or string in the profile), ``blob`` (far wider than commanded), ``end`` (within
+half a bead of a track end, where the profile cuts the round end cap).
 """
 from __future__ import annotations
 
@@ -40,6 +42,8 @@ SD_FLOOR_PX = 0.03
 STEP_PX = 0.5
 #: Fewest background samples each side (mm) needed for a trustworthy edge fit.
 MIN_BACKGROUND_MM = 0.2
+#: A station whose fit sd or relative residual exceeds this multiple of its track's median is flagged.
+OUTLIER_FACTOR = 4.0
 #: A bead whose amplitude is below this fraction of the track's typical one is missing.
 MISSING_FRACTION = 0.3
 
@@ -156,9 +160,17 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
         flag[(flag == "") & glare] = "glare"
     free = flag == ""
     flag[free & missing] = "missing"
+    # A fit much noisier than its track's typical one has something else in the profile
+    # (plate logo, scratch, dust, a stray string): flag it rather than trust a wide sd.
+    sd_ref = _track_median(smp.track, sd, fit.ok & (flag == ""))
+    rel_rms = fit.rms / np.maximum(np.abs(amp), 1e-6)
+    rms_ref = _track_median(smp.track, rel_rms, fit.ok & (flag == ""))
     failed = (~fit.ok | ~np.isfinite(sd) | (sd > 0.25 * np.maximum(w, 0.1)) | (np.abs(c) > half - 0.5 * w)
-              | (w > 2 * half - 2 * MIN_BACKGROUND_MM * 0.5))
+              | (w > 2 * half - 2 * MIN_BACKGROUND_MM * 0.5) | (sd > OUTLIER_FACTOR * sd_ref)
+              | (rel_rms > OUTLIER_FACTOR * rms_ref))
     flag[(flag == "") & failed] = "fit"
+    if manifest is not None:
+        flag[(flag == "") & _at_end(manifest, smp, w, w_ref)] = "end"
     blob = w > np.maximum(2.2 * w_ref, w_ref + 0.6)
     flag[(flag == "") & blob] = "blob"
     is_missing = flag == "missing"
@@ -174,6 +186,24 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     return WidthMeasurement(table=table, centre_mm=c, blur_mm=fit.params[:, 5], amplitude=fit.amplitude,
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else ())
+
+
+def _at_end(manifest, smp, w_meas, w_ref):
+    """Stations within half a bead of a track end, where the profile cuts the round end
+    cap (a chord, not the width). "Bead" = the widest measured within 3 mm of that end,
+    since end blobs are common (ooze, restore)."""
+    out = np.zeros(len(smp), bool)
+    wm = np.where(np.isfinite(w_meas), w_meas, 0.0)
+    for tid in np.unique(smp.track):
+        on = np.flatnonzero(smp.track == tid)
+        L = manifest.track(int(tid)).length_mm
+        s = smp.s_mm[on]
+        for d in (s, L - s):            # distance to the start, to the end
+            near = d < 3.0
+            if near.any():
+                reach = max(float(np.max(wm[on][near])), float(np.max(w_ref[on][near]))) / 2 + 0.1
+                out[on[near & (d < reach)]] = True
+    return out
 
 
 def _scatter_factor(track, w, sd, valid) -> float:
