@@ -186,9 +186,9 @@ def test_mcmc_recovers_tau_with_honest_diagnostics():
 
 
 def test_interval_coverage_small_seed_set():
-    """90 % intervals contain the truth in most of 12 datasets (binomial: 8..12 expected)."""
+    """90 % intervals contain the truth in most of 10 datasets (binomial 90 %: 7..10)."""
     hits = 0
-    for seed in range(12):
+    for seed in range(10):
         sc = make_scan(tau=0.25, gain=0.95, seed=100 + seed, n_tracks=4, n_per=100)
         # short chains (30 tau, no tau-stability wait) keep the test fast; intervals are
         # still from >= 30 tau x 32 walkers, i.e. hundreds of independent draws
@@ -196,7 +196,7 @@ def test_interval_coverage_small_seed_set():
                      tau_rtol=1.0, n_loo_draws=30)
         lo, hi = r.params["pa.tau_s"].ci90
         hits += lo < 0.25 < hi
-    assert 8 <= hits <= 12
+    assert 7 <= hits <= 10
 
 
 def test_non_convergence_is_reported():
@@ -252,3 +252,15 @@ def test_kalico_match_recovers_its_own_curve():
     assert fit["offset_mm"] == pytest.approx(0.12, rel=0.05)
     assert fit["rms_mm"] < 1e-4
     assert firmware_commands(0.04)["klipper_config"].endswith("pressure_advance: 0.0400")
+
+
+def test_duet3d_peer_recovers_pa_from_exponential_steps():
+    """Seed 004: steps every 30 mm at R = 20 mm/s with tau = 0.3 s -> PA = 1/(C R) = 0.3 s."""
+    from fit.peers import duet3d_pa
+
+    s = np.arange(0, 240, 0.25)
+    x = s % 30
+    up = (s // 30) % 2 == 0
+    rise = 1 - np.exp(-x / (0.3 * 20))
+    w = np.where(up, 0.35 + 0.25 * rise, 0.6 - 0.25 * rise) + 0.01 * np.sin(s / 7)
+    assert duet3d_pa(s, w, 30.0, 20.0) == pytest.approx(0.3, rel=0.05)
