@@ -271,8 +271,10 @@ def _corner_fit(H0, size, bed, img, ctr) -> float:
 
 # -- layout points and the track-likeness image -------------------------------------------
 def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 2500):
-    """Points (N, 2) mm on the centrelines of all extruding tracks, and their widths (mm)."""
-    pts, wid = [], []
+    """Points (N, 2) mm on the centrelines of all extruding tracks, their commanded widths
+    (N,) mm (capped at 3 mm: third-party restore moves can read as absurd widths) and
+    unit normals (N, 2)."""
+    pts, wid, nrm = [], [], []
     total = sum(tr.length_mm for tr in manifest.tracks if tr.kind != "label")
     step = max(spacing_mm, total / max_points) if total > 0 else spacing_mm
     for tr in manifest.tracks:
@@ -282,12 +284,14 @@ def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 2500):
         w = tr.interp("width_mm", s)
         keep = w > 0
         if keep.any():
-            pts.append(tr.at(s[keep])[0])
-            wid.append(w[keep])
+            p, tan = tr.at(s[keep])
+            pts.append(p)
+            wid.append(np.minimum(w[keep], 3.0))
+            nrm.append(np.column_stack([-tan[:, 1], tan[:, 0]]))
     if not pts:
         raise UserError("the manifest has no extruding tracks to register against; "
                         "is it the manifest of this print?")
-    return np.concatenate(pts), np.concatenate(wid)
+    return np.concatenate(pts), np.concatenate(wid), np.concatenate(nrm)
 
 
 class _TrackImage:
@@ -324,26 +328,24 @@ def _sample(img, uv, factor=1, order=1, cval=0.0):
     return ndimage.map_coordinates(img, coords, order=order, mode="constant", cval=cval)
 
 
-def estimate_polarity(gray, project, pts, wid, px_per_mm) -> tuple[float, float]:
-    """(+1 light-on-dark or -1, contrast in sd units) from centreline vs. beside-the-track.
+def estimate_polarity(gray, project, pts, wid, nrm) -> tuple[float, float]:
+    """(+1 light-on-dark or -1, clarity) from the track centre vs. just beside the track.
 
-    Compares the image at the track centre with the image 1 mm + w/2 to each side; the
-    median difference over all points decides, its robust z-score says how clear it is.
+    Compares the image at the centre line with the image w/2 + 0.3 mm to both sides along
+    the track normal (close, so a neighbouring line 1-2 mm away is not hit); the sign of
+    the median difference decides, its robust z-score (clarity) says how clear that is.
     """
+    off = (np.asarray(wid) / 2 + 0.3)[:, None] * nrm
     uv = project(pts)
-    # Side points along the image-space diagonal are good enough for a sign decision.
-    off = (np.asarray(wid) / 2 + 1.0) * px_per_mm
     a = _sample(gray, uv)
-    b1 = _sample(gray, uv + off[:, None] * np.array([0.7071, 0.7071]))
-    b2 = _sample(gray, uv - off[:, None] * np.array([0.7071, 0.7071]))
-    d = a - 0.5 * (b1 + b2)
+    d = a - 0.5 * (_sample(gray, project(pts + off)) + _sample(gray, project(pts - off)))
     inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < gray.shape[1] - 1) & (uv[:, 1] < gray.shape[0] - 1)
     d = d[inside]
     if len(d) < 10:
         return 1.0, 0.0
     med = float(np.median(d))
     mad = float(np.median(np.abs(d - med))) * 1.4826 + 1e-6
-    return (1.0 if med >= 0 else -1.0), abs(med) / mad * np.sqrt(len(d)) / 10
+    return (1.0 if med >= 0 else -1.0), abs(med) / mad
 
 
 # -- the registration ---------------------------------------------------------------------
@@ -421,7 +423,7 @@ def register(image, manifest, points=None, *, refine: bool = True,
         rms0 = np.inf
     if distortion is None:
         distortion = method == "points" or rms0 > 0.5
-    lay_pts, lay_w = layout_points(manifest)
+    lay_pts, lay_w, lay_n = layout_points(manifest)
     mp = _Mapping(H0, size, distortion, lay_pts)
     x = mp.x0()
     # Sanity: the layout must fall inside the image.
@@ -432,15 +434,22 @@ def register(image, manifest, points=None, *, refine: bool = True,
         raise UserError(f"only {inside.mean():.0%} of the pattern's tracks fall inside the image with this "
                         "registration; check --points (x_mm,y_mm=u_px,v_px) or that the manifest matches")
     scale = float(np.median(Camera(H=H0, image_size=size).px_per_mm(lay_pts[::max(1, len(lay_pts) // 200)])))
-    polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, scale)
+    polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, lay_n)
 
     if refine:
-        x = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale,
-                    (bed_pts, img_pts, ctr_pts) if method == "fiducials" else None,
-                    (hint_bed, hint_img) if hint_bed is not None else None, method)
+        corners = (bed_pts, img_pts, ctr_pts) if method == "fiducials" else None
+        hints = (hint_bed, hint_img) if hint_bed is not None else None
+        if method == "points":
+            # A hint start can be a line pitch off, which makes the polarity test
+            # unreliable: refine with both and keep the better-aligned result.
+            tries = [(_refine(gray, mp, x, lay_pts, lay_w, pol, scale, corners, hints, method), pol)
+                     for pol in (1.0, -1.0)]
+            (x, _), polarity = max(tries, key=lambda tr: tr[0][1])
+        else:
+            x, _ = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method)
         method += "+tracks"
         # Polarity again on the refined mapping (the hint start may have been too far off).
-        polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, scale)
+        polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, lay_n)
     k1, k2 = mp.k(x)
     reg = Registration(H=mp.H(x) / mp.H(x)[2, 2],
                        distortion={"center_px": tuple(center), "f_px": f_px, "k1": float(k1), "k2": float(k2)},
@@ -458,7 +467,10 @@ def register(image, manifest, points=None, *, refine: bool = True,
 
 
 def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method):
-    """Track-layout refinement (module docstring, step 2); returns the new parameter vector."""
+    """Track-layout refinement (module docstring, step 2).
+
+    Returns (parameter vector, score): score = mean saturated track-likeness along the
+    layout at the finest scale (higher = better aligned)."""
     W = gray.shape[1]
     w_med = float(np.median(lay_w))
     if method == "points":
@@ -513,4 +525,5 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
 
         sol = optimize.least_squares(resid, x, method="lm", x_scale="jac", diff_step=1e-6, max_nfev=120)
         x = sol.x
-    return x
+    score = float(np.mean(np.tanh(D(mp.project(x, lay_pts)) / 2.0)))
+    return x, score

@@ -42,6 +42,9 @@ SD_FLOOR_PX = 0.03
 STEP_PX = 0.5
 #: Fewest background samples each side (mm) needed for a trustworthy edge fit.
 MIN_BACKGROUND_MM = 0.2
+#: Widths (mm) the profile window is sized for are capped here: third-party G-code can
+#: command absurd widths (a restore move with a little XY motion reads as a 20 mm bead).
+MAX_WINDOW_WIDTH_MM = 3.0
 #: A station whose fit sd or relative residual exceeds this multiple of its track's median is flagged.
 OUTLIER_FACTOR = 4.0
 #: A bead whose amplitude is below this fraction of the track's typical one is missing.
@@ -235,7 +238,7 @@ def _reference_width(smp: Samples, w_nom):
             on = smp.track == tid
             pos = w[on] > 0
             w[on & zero] = np.median(w[on][pos]) if pos.any() else 0.4
-    return w
+    return np.minimum(w, MAX_WINDOW_WIDTH_MM)
 
 
 def _clearance(manifest: Manifest, smp: Samples, w_ref):
@@ -255,7 +258,7 @@ def _clearance(manifest: Manifest, smp: Samples, w_ref):
         pts.append(tr.at(ss[keep])[0])
         tid.append(np.full(keep.sum(), tr.id))
         s.append(ss[keep])
-        hw.append(w[keep] / 2)
+        hw.append(np.minimum(w[keep], MAX_WINDOW_WIDTH_MM) / 2)
         kind.append(np.full(keep.sum(), tr.kind, dtype=object))
     n = len(smp)
     gap = np.full(n, np.inf)
