@@ -60,3 +60,50 @@ def backup(path) -> Path | None:
         n += 1
     shutil.copy2(path, dest)
     return dest
+
+
+def json_default(o):
+    """``json.dumps(default=...)`` for numpy scalars/arrays and paths."""
+    import numpy as np
+
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def write_json(path, doc, indent: int = 1) -> Path:
+    """Write ``doc`` as JSON atomically (numpy values allowed)."""
+    import json
+
+    return atomic_write_text(path, json.dumps(doc, indent=indent, default=json_default, allow_nan=True))
+
+
+def read_json_doc(path, schema_prefix: str, kind: str, make_hint: str) -> dict:
+    """Read a calib JSON file whose ``schema`` starts with ``schema_prefix``.
+
+    Every failure is one UserError line: missing file, unreadable JSON, or a JSON file of
+    another kind (``make_hint`` says how to make the right one, e.g. "run `calib fit`").
+    """
+    import json
+
+    from calib.errors import UserError
+
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{kind} file {path} does not exist; {make_hint}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path} is not a readable {kind} JSON file ({exc})") from None
+    if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith(schema_prefix):
+        raise UserError(f"{path} is not a calib {kind} file (no 'schema: {schema_prefix}N' key); "
+                        f"{make_hint}")
+    return doc

@@ -11,14 +11,12 @@ Information criteria (Schwarz 1978; Vehtari, Gelman & Gabry 2017):
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from calib.errors import UserError
-from calib.fileio import atomic_write_text
+from calib.fileio import read_json_doc, write_json
 
 SCHEMA = "calib.fit/1"
 
@@ -140,35 +138,11 @@ class FitResult:
         }
 
     def save(self, path) -> Path:
-        return atomic_write_text(path, json.dumps(self.to_json(), indent=1, default=_default,
-                                                  allow_nan=True))
+        return write_json(path, self.to_json())
 
 
 def load_fit_json(path) -> dict:
     """Read ``fit.json`` as a dict (checked schema); ``samples`` as an array."""
-    path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"fit file {path} does not exist; run `calib fit` first") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path} is not a readable fit JSON file ({exc})") from None
-    if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith("calib.fit/"):
-        raise UserError(f"{path} is not a calib fit file (no 'schema: calib.fit/N'); "
-                        "make one with `calib fit`")
+    doc = read_json_doc(path, "calib.fit/", "fit", "run `calib fit` first")
     doc["samples"] = np.asarray(doc.get("samples", []), dtype=float)
     return doc
-
-
-def _default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o)}")

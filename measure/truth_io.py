@@ -19,14 +19,13 @@ applied after it (measure/camera.py).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from calib.errors import UserError
-from calib.fileio import atomic_write_text
+from calib.fileio import read_json_doc, write_json
 from measure.camera import Camera
 from measure.table import WidthTable
 
@@ -84,35 +83,14 @@ def truth_path_for(image_path) -> Path:
 
 def save_scan_truth(path, truth: ScanTruth) -> Path:
     """Write ``truth`` to ``path`` atomically (JSON, schema above)."""
-    text = json.dumps(truth.to_dict(), indent=1, default=_json_default)
-    return atomic_write_text(path, text)
+    return write_json(path, truth.to_dict())
 
 
 def load_scan_truth(path) -> ScanTruth:
     """Read a ``SCAN.truth.json``; UserError if it is missing or not one."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"truth file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path} is not a readable truth JSON file ({exc})") from None
-    if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith("calib.scantruth/"):
-        raise UserError(f"{path} is not a scan truth file (no 'schema: calib.scantruth/N'); "
-                        "make one with `calib simulate`")
+    doc = read_json_doc(path, "calib.scantruth/", "scan truth", "make one with `calib simulate`")
     try:
         return ScanTruth.from_dict(doc)
     except (KeyError, TypeError, ValueError) as exc:
         raise UserError(f"truth file {path} is malformed: {exc}") from None
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o)}")

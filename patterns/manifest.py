@@ -22,6 +22,8 @@ import numpy as np
 
 from calib.errors import UserError
 from calib.fileio import atomic_write as _atomic_write
+from calib.fileio import json_default as _json_default
+from calib.fileio import read_json_doc
 
 SCHEMA = "calib.manifest/1"
 
@@ -220,14 +222,7 @@ class Manifest:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Manifest":
         path = Path(path)
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise UserError(f"manifest {path} does not exist") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise UserError(f"{path} is not a readable manifest JSON file ({exc})") from None
-        if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith("calib.manifest/"):
-            raise UserError(f"{path} is not a calib manifest (no 'schema: calib.manifest/N' key); "
+        doc = read_json_doc(path, "calib.manifest/", "manifest",
                             "make one with `calib pattern` or `calib plan`")
         try:
             tracks = [Track(**t) for t in doc["tracks"]]
@@ -327,15 +322,3 @@ def _first_passage_time(s_tl: np.ndarray, t_tl: np.ndarray, s: np.ndarray) -> np
     keep = np.concatenate([[True], np.diff(smax) > 0])
     t = np.interp(s, smax[keep], t_tl[keep], left=np.nan, right=np.nan)
     return t
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o)}")

@@ -171,7 +171,7 @@ def test_truth_json_round_trip(tmp_path, manifest, phone):
     xy = np.array([[10.0, 20.0]])
     np.testing.assert_allclose(back.camera.project(xy), phone.project(xy), atol=1e-9)
     (tmp_path / "bad.json").write_text('{"schema": "other"}')
-    with pytest.raises(UserError, match="not a scan truth file"):
+    with pytest.raises(UserError, match="not a calib scan truth file"):
         load_scan_truth(tmp_path / "bad.json")
     with pytest.raises(UserError, match="does not exist"):
         load_scan_truth(tmp_path / "missing.json")
