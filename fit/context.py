@@ -18,13 +18,25 @@ which conserves volume exactly. Flow while the nozzle is on no track is dribble.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 
 from calib.errors import UserError
 from fit.geometry import filament_area_mm2
 from patterns.manifest import Manifest, Samples, Timeline, sample_points
+
+#: Physics timeline coarsening (:func:`coarsen_nodes`): a merged interval lays at most
+#: COARSE_DS_MM of bead and lasts at most COARSE_DT_S; the commanded extruder velocity
+#: and head speed stay within COARSE_RTOL (relative) of the first merged interval; no
+#: merging within COARSE_GUARD_S after a change of command, head speed, track or height
+#: (fast transients of a direct drive, tau ~0.02 s, keep the planner's resolution).
+COARSE_DS_MM = 0.25
+COARSE_DT_S = 0.05
+COARSE_RTOL = 1e-3
+COARSE_GUARD_S = 0.1
+COARSE_GUARD_RTOL = 0.05
 
 PROFILE_KEYS = ("filament_diameter_mm", "nozzle_diameter_mm", "nozzle_land_length_mm",
                 "bowden_length_mm")
@@ -85,6 +97,12 @@ class SimContext:
     firmware_pa_s: float = 0.0
     firmware_smooth_time_s: float = 0.0
     cache: dict = field(default_factory=dict, repr=False)
+    #: The same print on the coarsened physics timeline (:func:`coarsen_nodes`), used by
+    #: ``Model.predict`` (widths only); None if coarsening saves nothing. The arrays above
+    #: keep the planner's full timeline (``simulate``/``flow`` report on it).
+    physics: "SimContext | None" = field(default=None, repr=False)
+    #: On a coarsened context: index of each node in the full timeline.
+    node_index: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n_t(self) -> int:
@@ -95,13 +113,14 @@ class SimContext:
         return len(self.s_mm)
 
     @classmethod
-    def build(cls, manifest, samples=None, profile=None) -> "SimContext":
+    def build(cls, manifest, samples=None, profile=None, coarsen: bool = True) -> "SimContext":
         """Precompute from a :class:`Manifest` (with timeline) and stations.
 
         ``samples``: a :class:`patterns.manifest.Samples`, a :class:`measure.table.WidthTable`
         (its track, s_mm), or None for ``sample_points(manifest)``. ``profile``: a
         PrinterProfile or dict with filament_diameter_mm and nozzle_diameter_mm (default:
-        ``manifest.printer``).
+        ``manifest.printer``). ``coarsen``: also build :attr:`physics`, the context on the
+        coarsened timeline that ``predict`` integrates (see :func:`coarsen_nodes`).
         """
         if isinstance(manifest, Timeline):
             manifest = Manifest(printer={}, pattern={}, tracks=[], timeline=manifest)
@@ -169,7 +188,7 @@ class SimContext:
                       float(0.5 * (st["y"].min() + st["y"].max())))
         else:
             center = (0.0, 0.0)
-        return cls(
+        ctx = cls(
             t_s=t, e_mm=tl.e_mm, ve_node_mm_s=tl.ve_mm_s, dt_s=dt, de_mm=de, ve_mm_s=de / dt,
             v_head_mm_s=v_head, h_mm=np.where(on, h_int, 0.0), on_track=on,
             track=np.where(on, trk[:-1], -1),
@@ -183,6 +202,77 @@ class SimContext:
             firmware_smooth_time_s=_pget("firmware_smooth_time_s", "pressure_advance_smooth_time_s",
                                          "smooth_time_s"),
         )
+        if coarsen:
+            keep = coarsen_nodes(ctx, trk)
+            if len(keep) < 0.9 * len(t):
+                sub = replace(manifest, timeline=tl.slice(keep))
+                ctx.physics = cls.build(sub, samples, profile, coarsen=False)
+                ctx.physics.node_index = keep
+        return ctx
+
+
+@njit(cache=True)
+def _coarsen_kernel(dt, ve, vh, ds, h, on, trk_int, trk_node, ds_max, dt_max, rtol, guard_s, guard_rtol):
+    n = dt.shape[0]
+    keep = np.empty(n + 1, np.int64)
+    keep[0] = 0
+    m = 1
+    g0 = 0
+    tsum = dt[0]
+    dsum = ds[0]
+    since = 0.0            # time since the last change of command / speed / track / height
+    for k in range(1, n):
+        changed = (on[k] != on[k - 1] or trk_int[k] != trk_int[k - 1] or h[k] != h[k - 1]
+                   or abs(ve[k] - ve[k - 1]) > guard_rtol * max(abs(ve[k - 1]), 1e-6)
+                   or (on[k] and abs(vh[k] - vh[k - 1]) > guard_rtol * max(abs(vh[k - 1]), 1e-6)))
+        if changed:
+            since = 0.0
+        ok = (not changed) and since >= guard_s and on[k] == on[g0] and trk_int[k] == trk_int[g0] \
+            and h[k] == h[g0] and tsum + dt[k] <= dt_max \
+            and abs(ve[k] - ve[g0]) <= rtol * max(abs(ve[g0]), 1e-6)
+        if ok and on[g0]:
+            ok = dsum + ds[k] <= ds_max and abs(vh[k] - vh[g0]) <= rtol * max(abs(vh[g0]), 1e-6)
+        if ok and not on[g0]:
+            # merged travel must stay off-track: its end nodes on one track would make it a
+            # track interval
+            ok = not (trk_node[g0] == trk_node[k + 1] and trk_node[g0] >= 0)
+        since += dt[k]
+        if ok:
+            tsum += dt[k]
+            dsum += ds[k]
+        else:
+            keep[m] = k
+            m += 1
+            g0 = k
+            tsum = dt[k]
+            dsum = ds[k]
+    keep[m] = n
+    m += 1
+    return keep[:m].copy()
+
+
+def coarsen_nodes(ctx: "SimContext", trk_node, ds_max_mm: float = COARSE_DS_MM,
+                  dt_max_s: float = COARSE_DT_S, rtol: float = COARSE_RTOL,
+                  guard_s: float = COARSE_GUARD_S, guard_rtol: float = COARSE_GUARD_RTOL) -> np.ndarray:
+    """Indices of the timeline nodes kept on the physics timeline (first and last always).
+
+    Consecutive intervals merge while nothing the physics needs changes: same track (or
+    both off-track, and the merged travel does not start and end on one track), same layer
+    height, commanded extruder velocity and (on a track) head speed within ``rtol`` of the
+    first merged interval, at most ``ds_max_mm`` of bead and ``dt_max_s`` per merged
+    interval, and not within ``guard_s`` after a change. The e_mm increments add, so the
+    commanded volume is conserved exactly; the deposit maps keep a spatial resolution of
+    ``ds_max_mm`` (the planner's own bound). The exact linear step is exact on the merged
+    intervals; the nonlinear theta step is second order in dt/tau_loc.
+    """
+    dt = np.ascontiguousarray(ctx.dt_s, dtype=float)
+    ds = ctx.v_head_mm_s * dt
+    return _coarsen_kernel(dt, np.ascontiguousarray(ctx.ve_mm_s, float),
+                           np.ascontiguousarray(ctx.v_head_mm_s, float), ds,
+                           np.ascontiguousarray(ctx.h_mm, float), np.ascontiguousarray(ctx.on_track),
+                           np.ascontiguousarray(ctx.track, np.int64),
+                           np.ascontiguousarray(trk_node, np.int64), float(ds_max_mm), float(dt_max_s),
+                           float(rtol), float(guard_s), float(guard_rtol))
 
 
 def _stations(manifest: Manifest, samples, track_of: dict) -> dict:

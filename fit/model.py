@@ -231,8 +231,11 @@ class Model:
         return area
 
     def predict(self, ctx: SimContext, theta) -> np.ndarray:
-        """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed."""
-        return self.simulate(ctx, theta).widths_mm
+        """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed.
+
+        Integrates on the coarsened physics timeline ``ctx.physics`` when there is one
+        (fit/context.py :func:`coarsen_nodes`; same widths within ~1 um)."""
+        return self.simulate(ctx.physics or ctx, theta).widths_mm
 
     def flow(self, ctx: SimContext, theta) -> np.ndarray:
         """Volumetric nozzle flow q (n_sets, n_t) mm^3/s at the timeline nodes."""
