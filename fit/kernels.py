@@ -19,9 +19,17 @@ with w(vn) = bead_width_mm(Af * vn / v_head, h) the width being laid (only on a 
 The commanded extruder velocity ``ve`` is piecewise constant over each timeline interval
 (``de / dt``), so the commanded volume is integrated exactly. Two schemes:
 
-* :func:`linear_kernel` (pa + offset only): the exact solution of the piecewise-linear
+* :func:`_linear_row` (pa + offset only): the exact solution of the piecewise-linear
   ODE, including the instant where P crosses Kc (flow stops / starts) inside an interval.
-* :func:`general_kernel`: an exponentially fitted theta scheme
+* :func:`_thermal_row` (pa + offset + thermal, all linear): the exact solution
+  of the two-state linear system (q = P - Kc, X) over each interval,
+      d/dt [q, X] = A [q, X] + [ve, 0],  A = [[-(1+a)/tau, a], [1/(tau tau_th), -1/tau_th]]
+  (steady state q* = ve tau, X* = ve), [q, X](h) = y* + exp(A h) (y0 - y*) with the 2x2
+  exponential in closed form (real eigenvalues, a >= 0); while q < 0 (no flow) q moves
+  by ve t + a tau_th X0 (1 - exp(-t/tau_th)); the instants where q crosses 0 inside an
+  interval are found by safeguarded Newton. Out per interval from the exact balance
+  out = ve h - dq - a tau_th dX.
+* :func:`_general_row`: an exponentially fitted theta scheme
   P1 = P0 + dt*ve + a' X0 - (dt + a') [(1-th) vn0 + th vn1],  P1 = Preq(vn1),
   th = 1/(1 - exp(-r)) - 1/r,  r = (dt + a') / tau_loc,  tau_loc = dPreq/dvn,
   a' = a * tau_th * (1 - exp(-dt/tau_th))  (~ a*dt; makes the thermal source exactly
@@ -31,7 +39,7 @@ The commanded extruder velocity ``ve`` is piecewise constant over each timeline 
   dt/tau_loc and L-stable (th -> 1 as r -> inf). The implicit equation is monotone in
   vn1 and solved by safeguarded Newton (bisection fallback) on a bracket.
 
-Both return the filament length that left the nozzle in every interval, so
+All three give the filament length that left the nozzle in every interval, so
 sum(out) = sum(de) - (P_end - P_0) + thermal source, exactly (volume conservation).
 """
 from __future__ import annotations
@@ -49,48 +57,160 @@ _PI4 = math.pi / 4.0
 _TAU_MIN = 1e-6
 
 
-def linear_kernel(ve, ve_per_set, dt, tau, kc, p0, out, vn_node, p_end):
-    """Exact solution of dP/dt = ve - max(P - Kc, 0)/tau with piecewise-constant ve.
+MODE_LINEAR, MODE_THERMAL, MODE_GENERAL = 0, 1, 2
 
-    ve (n_sets, n_int) mm/s, or (1, n_int) shared if ve_per_set == 0; dt (n_int,) s;
-    tau, kc, p0 (n_sets,) s, mm, mm.
-    Writes out (n_sets, n_int) mm of filament through the nozzle per interval,
-    vn_node (n_sets, n_int+1) outflow at the nodes (mm/s), p_end (n_sets,) mm.
-    """
-    n_sets = tau.shape[0]
-    n_int = ve.shape[1]
-    for i in prange(n_sets):
-        iv = i * ve_per_set
-        ta = max(tau[i], _TAU_MIN)
-        q = p0[i] - kc[i]          # pressure above the flow threshold (mm)
-        vn_node[i, 0] = max(q, 0.0) / ta
-        for k in range(n_int):
-            h = dt[k]
-            v = ve[iv, k]
-            tgt = v * ta
-            if q >= 0.0:
-                if v >= 0.0:
-                    q1 = tgt + (q - tgt) * math.exp(-h / ta)
-                else:
-                    # Decays towards a negative target: flow stops when q reaches 0.
-                    t0 = ta * math.log1p(q / (-tgt))
-                    if t0 >= h:
-                        q1 = tgt + (q - tgt) * math.exp(-h / ta)
-                    else:
-                        q1 = v * (h - t0)
+
+@njit(cache=True)
+def _linear_row(ve, iv, dt, tau, kc, p0, out, vn_node, want_vn):
+    """Exact solution of dP/dt = ve - max(P - Kc, 0)/tau with piecewise-constant ve for
+    one parameter set (row iv of ve). Writes out (n_int,) mm, vn_node (n_int+1,) mm/s if
+    want_vn; returns P at the end (mm)."""
+    n_int = dt.shape[0]
+    ta = max(tau, _TAU_MIN)
+    q = p0 - kc          # pressure above the flow threshold (mm)
+    if want_vn:
+        vn_node[0] = max(q, 0.0) / ta
+    h_prev = -1.0
+    ex = 1.0
+    for k in range(n_int):
+        h = dt[k]
+        v = ve[iv, k]
+        tgt = v * ta
+        if q >= 0.0:
+            if h != h_prev:
+                ex = math.exp(-h / ta)
+                h_prev = h
+            if v >= 0.0:
+                q1 = tgt + (q - tgt) * ex
             else:
-                if v <= 0.0:
+                # Decays towards a negative target: flow stops when q reaches 0.
+                t0 = ta * math.log1p(q / (-tgt))
+                if t0 >= h:
+                    q1 = tgt + (q - tgt) * ex
+                else:
+                    q1 = v * (h - t0)
+        else:
+            if v <= 0.0:
+                q1 = q + v * h
+            else:
+                t0 = -q / v
+                if t0 >= h:
                     q1 = q + v * h
                 else:
-                    t0 = -q / v
-                    if t0 >= h:
-                        q1 = q + v * h
-                    else:
-                        q1 = tgt - tgt * math.exp(-(h - t0) / ta)
-            out[i, k] = v * h - (q1 - q)
-            q = q1
-            vn_node[i, k + 1] = max(q, 0.0) / ta
-        p_end[i] = q + kc[i]
+                    q1 = -tgt * math.expm1(-(h - t0) / ta)
+        out[k] = v * h - (q1 - q)
+        q = q1
+        if want_vn:
+            vn_node[k + 1] = max(q, 0.0) / ta
+    return q + kc
+
+
+@njit(cache=True)
+def _th_c(h, s, dlt):
+    """exp(A h) = c0 I + c1 (A - s I) for the 2x2 A with eigenvalues s +- dlt (real):
+    c0 = exp(s h) cosh(dlt h), c1 = exp(s h) sinh(dlt h) / dlt."""
+    x = dlt * h
+    if x > 1e-3:
+        e1 = math.exp((s + dlt) * h)
+        e2 = math.exp((s - dlt) * h)
+        return 0.5 * (e1 + e2), 0.5 * (e1 - e2) / dlt
+    es = math.exp(s * h)
+    x2 = x * x
+    return es * (1.0 + x2 * (0.5 + x2 / 24.0)), es * h * (1.0 + x2 * (1.0 / 6.0 + x2 / 120.0))
+
+
+@njit(cache=True)
+def _th_state(t, flowing, q0, x0, v, ta, a, tth, s, dlt):
+    """(q, X, dq/dt) after time t from (q0, X0) in one mode of the thermal-linear system."""
+    if flowing:
+        c0, c1 = _th_c(t, s, dlt)
+        dq = q0 - v * ta
+        dx = x0 - v
+        m11 = -(1.0 + a) / ta - s
+        q = v * ta + c0 * dq + c1 * (m11 * dq + a * dx)
+        x = v + c0 * dx + c1 * (dq / (ta * tth) - m11 * dx)
+        return q, x, v - (1.0 + a) * q / ta + a * x
+    ex = math.exp(-t / tth)
+    x = x0 * ex
+    return q0 + v * t - a * tth * x0 * math.expm1(-t / tth), x, v + a * x
+
+
+@njit(cache=True)
+def _thermal_row(ve, iv, dt, tau, kc, a, tauth, p0, out, vn_node, want_vn):
+    """Exact solution of the linear pa + offset + thermal system (module docstring) for one
+    parameter set. Returns (P_end mm, X_end mm/s)."""
+    n_int = dt.shape[0]
+    ta = max(tau, _TAU_MIN)
+    tth = max(tauth, 1e-9)
+    a = max(a, 0.0)
+    # eigenvalues s +- dlt of A (real: discriminant >= a/(tau tau_th) >= 0)
+    s = -0.5 * ((1.0 + a) / ta + 1.0 / tth)
+    hd = 0.5 * ((1.0 + a) / ta - 1.0 / tth)
+    dlt = math.sqrt(hd * hd + a / (ta * tth))
+    m11 = -(1.0 + a) / ta - s
+    q = p0 - kc
+    x = 0.0
+    if want_vn:
+        vn_node[0] = max(q, 0.0) / ta
+    h_prev = -1.0
+    c0 = 1.0
+    c1 = 0.0
+    for k in range(n_int):
+        h = dt[k]
+        v = ve[iv, k]
+        qs = q
+        xs = x
+        flowing = q > 0.0 or (q == 0.0 and v + a * x > 0.0)
+        rem = h
+        for _ in range(8):
+            if flowing:
+                if rem == h:
+                    if h != h_prev:
+                        c0, c1 = _th_c(h, s, dlt)
+                        h_prev = h
+                    dq = q - v * ta
+                    dx = x - v
+                    q1 = v * ta + c0 * dq + c1 * (m11 * dq + a * dx)
+                    x1 = v + c0 * dx + c1 * (dq / (ta * tth) - m11 * dx)
+                else:
+                    q1, x1, _ = _th_state(rem, True, q, x, v, ta, a, tth, s, dlt)
+                if q1 >= 0.0:
+                    q, x = q1, x1
+                    break
+            else:
+                q1, x1, _ = _th_state(rem, False, q, x, v, ta, a, tth, s, dlt)
+                if q1 <= 0.0:
+                    q, x = q1, x1
+                    break
+            # q crosses 0 inside the remaining time: safeguarded Newton on [0, rem]
+            lo = 0.0
+            hi = rem
+            t = rem * q / (q - q1) if q != q1 else 0.5 * rem
+            for _ in range(60):
+                qt, xt, dqt = _th_state(t, flowing, q, x, v, ta, a, tth, s, dlt)
+                if (qt > 0.0) == flowing:
+                    lo = t
+                else:
+                    hi = t
+                tn = t - qt / dqt if dqt != 0.0 else 0.5 * (lo + hi)
+                if not (lo < tn < hi):
+                    tn = 0.5 * (lo + hi)
+                if abs(tn - t) <= 1e-15 * (1.0 + rem) or hi - lo <= 1e-15 * rem:
+                    t = tn
+                    break
+                t = tn
+            t = min(max(t, 0.0), rem)
+            _, x, _ = _th_state(t, flowing, q, x, v, ta, a, tth, s, dlt)
+            q = 0.0
+            rem -= t
+            flowing = not flowing
+            if rem <= 0.0:
+                break
+        # exact balance: q1 - q0 = ve h - out - a tau_th (X1 - X0)
+        out[k] = v * h - (q - qs) - a * tth * (x - xs)
+        if want_vn:
+            vn_node[k + 1] = max(q, 0.0) / ta
+    return q + kc, x
 
 
 @njit(cache=True)
@@ -150,25 +270,23 @@ def _preq0(c, vhead, on):
     return p
 
 
-def general_kernel(ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_end):
-    """Exponentially fitted theta scheme for the full nonlinear Preq and thermal ooze.
-
-    ve (n_sets, n_int) mm/s; dt, vhead (mm/s), hgt (mm), on (bool) per interval;
-    coef (n_sets, N_COEF); af filament area mm^2; p0 (n_sets,) initial P (mm).
-    Writes out (n_sets, n_int) mm of filament out of the nozzle per interval,
-    vn_node (n_sets, n_int+1) mm/s, p_end, x_end (n_sets,).
+@njit(cache=True)
+def _general_row(ve, iv, dt, vhead, hgt, on, c, af, p0, out, vn_node, want_vn):
+    """Exponentially fitted theta scheme for the full nonlinear Preq and thermal ooze, one
+    parameter set (row iv of ve, coefficients c). dt, vhead (mm/s), hgt (mm), on (bool)
+    per interval; af filament area mm^2; p0 initial P (mm). Writes out (n_int,) mm of
+    filament out of the nozzle per interval, vn_node (n_int+1,) mm/s if want_vn;
+    returns (P_end, X_end).
     """
-    n_sets = coef.shape[0]
-    n_int = ve.shape[1]
-    for i in prange(n_sets):
-        iv = i * ve_per_set
-        c = coef[i]
+    n_int = dt.shape[0]
+    if True:
         a = c[C_ATH]
         tauth = max(c[C_TAUTH], 1e-9)
-        p = p0[i]
+        p = p0
         vn0 = 0.0
         xth = 0.0
-        vn_node[i, 0] = 0.0
+        if want_vn:
+            vn_node[0] = 0.0
         for k in range(n_int):
             h = dt[k]
             v = ve[iv, k]
@@ -240,13 +358,50 @@ def general_kernel(ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, out, vn_nod
                 vn1 = x
                 p1 = b - cc * vn1
             vbar = (1.0 - th) * vn0 + th * vn1
-            out[i, k] = vbar * h
+            out[k] = vbar * h
             xth = vbar + (xth - vbar) * eth
             p = p1
             vn0 = vn1
-            vn_node[i, k + 1] = vn1
-        p_end[i] = p
-        x_end[i] = xth
+            if want_vn:
+                vn_node[k + 1] = vn1
+    return p, xth
+
+
+@njit(cache=True)
+def _nozzle_row(mode, ve, iv, dt, vhead, hgt, on, c, af, p0, out, vn_node, want_vn):
+    """One parameter set through the kernel of ``mode``; returns (P_end, X_end)."""
+    if mode == MODE_LINEAR:
+        return _linear_row(ve, iv, dt, c[C_TAU], c[C_KC], p0, out, vn_node, want_vn), 0.0
+    if mode == MODE_THERMAL:
+        return _thermal_row(ve, iv, dt, c[C_TAU], c[C_KC], c[C_ATH], c[C_TAUTH], p0, out,
+                            vn_node, want_vn)
+    return _general_row(ve, iv, dt, vhead, hgt, on, c, af, p0, out, vn_node, want_vn)
+
+
+def nozzle_kernel(mode, ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, out, vn_node, p_end, x_end):
+    """All parameter sets through the nozzle: ve (n_sets or 1, n_int) mm/s, coef
+    (n_sets, N_COEF), p0 (n_sets,). Writes out (n_sets, n_int) mm, vn_node (n_sets,
+    n_int+1) mm/s, p_end, x_end (n_sets,)."""
+    n_sets = coef.shape[0]
+    for i in prange(n_sets):
+        pe, xe = _nozzle_row(mode, ve, i * ve_per_set, dt, vhead, hgt, on, coef[i], af, p0[i],
+                             out[i], vn_node[i], True)
+        p_end[i] = pe
+        x_end[i] = xe
+
+
+def predict_kernel(mode, ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, perm, lo_pos, lo_frac,
+                   hi_pos, hi_frac, win, area):
+    """Nozzle then deposit (:func:`deposit_kernel`) per parameter set, without keeping the
+    per-interval outflow: writes only the station cross-sections area (n_sets, n_s) mm^2."""
+    n_sets = coef.shape[0]
+    n_int = dt.shape[0]
+    for i in prange(n_sets):
+        out = np.empty(n_int)
+        vn = np.empty(1)
+        cbuf = np.empty(max(perm.shape[0], 1))
+        _nozzle_row(mode, ve, i * ve_per_set, dt, vhead, hgt, on, coef[i], af, p0[i], out, vn, False)
+        _deposit_row(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], cbuf)
 
 
 @njit(cache=True)
@@ -268,28 +423,39 @@ def play_operator(e, width, out):
             out[i, k] = y
 
 
+@njit(cache=True)
+def _deposit_row(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area, c):
+    """One parameter set of :func:`deposit_kernel`; c is a scratch array (len(perm),)."""
+    m = perm.shape[0]
+    n_s = lo_pos.shape[0]
+    if m == 0:
+        for k in range(n_s):
+            area[k] = 0.0
+        return
+    acc = 0.0
+    for j in range(m):
+        acc += out[perm[j]] * af
+        c[j] = acc
+    for k in range(n_s):
+        if win[k] > 1e-9:
+            a = lo_pos[k]
+            b = hi_pos[k]
+            v_lo = c[a] - (1.0 - lo_frac[k]) * out[perm[a]] * af
+            v_hi = c[b] - (1.0 - hi_frac[k]) * out[perm[b]] * af
+            area[k] = (v_hi - v_lo) / win[k]
+        else:
+            area[k] = 0.0
+
+
 def deposit_kernel(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area):
     """Cross-section A_i (mm^2) over the station windows (fit/context.py):
     V(s_b) = C[pos] - (1 - frac) * dV[perm[pos]],  C = cumsum(dV[perm]),  dV = Af * out,
     A_i = (V(hi_i) - V(lo_i)) / win_i."""
     n_sets = out.shape[0]
     m = perm.shape[0]
-    n_s = lo_pos.shape[0]
     for i in prange(n_sets):
-        c = np.empty(m)
-        acc = 0.0
-        for j in range(m):
-            acc += out[i, perm[j]] * af
-            c[j] = acc
-        for k in range(n_s):
-            if win[k] > 1e-9:
-                a = lo_pos[k]
-                b = hi_pos[k]
-                v_lo = c[a] - (1.0 - lo_frac[k]) * out[i, perm[a]] * af
-                v_hi = c[b] - (1.0 - hi_frac[k]) * out[i, perm[b]] * af
-                area[i, k] = (v_hi - v_lo) / win[k]
-            else:
-                area[i, k] = 0.0
+        c = np.empty(max(m, 1))
+        _deposit_row(out[i], perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], c)
 
 
 def bead_width_kernel(area, h, h_per_set, printed, out):
@@ -308,12 +474,12 @@ def bead_width_kernel(area, h, h_per_set, printed, out):
 
 # Each kernel twice: serial (one or a few parameter sets: no thread start-up cost) and
 # parallel over parameter sets (prange; emcee ensembles, 64+ sets).
-_PY = {"linear": linear_kernel, "general": general_kernel, "deposit": deposit_kernel,
+_PY = {"nozzle": nozzle_kernel, "predict": predict_kernel, "deposit": deposit_kernel,
        "bead_width": bead_width_kernel}
 SERIAL = {k: njit(cache=True)(f) for k, f in _PY.items()}
 PARALLEL = {k: njit(cache=True, parallel=True)(f) for k, f in _PY.items()}
 #: Parameter sets from which the parallel kernels pay off.
-PARALLEL_MIN_SETS = 8
+PARALLEL_MIN_SETS = 4
 
 
 def kernel(name: str, n_sets: int):

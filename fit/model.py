@@ -35,6 +35,7 @@ _COEF_DEFAULT[K.C_TVL] = 1.0
 _COEF_DEFAULT[K.C_RVL] = 1.0
 _COEF_DEFAULT[K.C_TAUTH] = 1.0
 _LINEAR_OK = {"pa", "pa_ve", "offset"}
+_THERMAL_LINEAR_OK = _LINEAR_OK | {"thermal"}
 
 
 @dataclass
@@ -89,6 +90,11 @@ class Model:
         self.param_names: list[str] = [p.name for p in self.params]
         self.bounds = np.array([[p.lower, p.upper] for p in self.params], dtype=float).reshape(-1, 2)
         self._linear = all(e.name in _LINEAR_OK for e in self.effects if e.nozzle_term)
+        # kernel: exact linear (pa/offset), exact two-state linear (+ thermal), or the
+        # theta scheme for nonlinear Preq terms (fit/kernels.py)
+        self._mode = K.MODE_LINEAR if self._linear else (
+            K.MODE_THERMAL if all(e.name in _THERMAL_LINEAR_OK for e in self.effects if e.nozzle_term)
+            else K.MODE_GENERAL)
         self._nozzle = [e for e in self.effects if e.nozzle_term]
         self._command = [e for e in self.effects if "command" in e.stages()]
         self._height = [e for e in self.effects if "height" in e.stages()]
@@ -171,8 +177,8 @@ class Model:
         return out
 
     # -- physics ------------------------------------------------------------------
-    def simulate(self, ctx: SimContext, theta, p0_mm=None) -> Simulation:
-        """Run command -> nozzle -> deposit for every parameter set in theta."""
+    def _nozzle_inputs(self, ctx: SimContext, theta, p0_mm=None):
+        """Command stage and kernel coefficients: (n, pdicts, ve, ve_per_set, coef, p0)."""
         th = self._theta2d(theta)
         n = th.shape[0]
         pds = self._pdicts(th)
@@ -191,17 +197,10 @@ class Model:
             if e.nozzle_term:
                 e.nozzle(p, coef)
         p0 = np.zeros(n) if p0_mm is None else np.broadcast_to(np.asarray(p0_mm, float), (n,)).copy()
-        out = np.empty((n, n_int))
-        vn = np.empty((n, n_int + 1))
-        p_end = np.empty(n)
-        x_end = np.zeros(n)
-        if self._linear:
-            K.kernel("linear", n)(ve, ve_per_set, ctx.dt_s, np.ascontiguousarray(coef[:, K.C_TAU]),
-                            np.ascontiguousarray(coef[:, K.C_KC]), p0, out, vn, p_end)
-        else:
-            K.kernel("general", n)(ve, ve_per_set, ctx.dt_s, ctx.v_head_mm_s, ctx.h_mm, ctx.on_track, coef,
-                             ctx.filament_area_mm2, p0, out, vn, p_end, x_end)
-        area = self._deposit(ctx, out)
+        return n, pds, ve, ve_per_set, coef, p0
+
+    def _widths(self, ctx: SimContext, area, pds, n):
+        """Height and width stages: (widths, heights) at the stations."""
         h = ctx.s_height_mm[None, :]
         for e, p in zip(self.effects, pds):
             if "height" in e.stages():
@@ -215,6 +214,20 @@ class Model:
                 if "width" in e.stages():
                     w = np.asarray(e.width(ctx, w, p), dtype=float)
             w = np.maximum(w, 0.0)
+        return w, h
+
+    def simulate(self, ctx: SimContext, theta, p0_mm=None) -> Simulation:
+        """Run command -> nozzle -> deposit for every parameter set in theta."""
+        n, pds, ve, ve_per_set, coef, p0 = self._nozzle_inputs(ctx, theta, p0_mm)
+        n_int = len(ctx.dt_s)
+        out = np.empty((n, n_int))
+        vn = np.empty((n, n_int + 1))
+        p_end = np.empty(n)
+        x_end = np.zeros(n)
+        K.kernel("nozzle", n)(self._mode, ve, ve_per_set, ctx.dt_s, ctx.v_head_mm_s, ctx.h_mm,
+                              ctx.on_track, coef, ctx.filament_area_mm2, p0, out, vn, p_end, x_end)
+        area = self._deposit(ctx, out)
+        w, h = self._widths(ctx, area, pds, n)
         return Simulation(out_mm=out, vn_node_mm_s=vn, ve_mm_s=np.broadcast_to(ve, (n, n_int)),
                           p_end_mm=p_end, x_end_mm_s=x_end,
                           widths_mm=w, height_mm=np.broadcast_to(h, area.shape), area_mm2=area)
@@ -234,8 +247,15 @@ class Model:
         """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed.
 
         Integrates on the coarsened physics timeline ``ctx.physics`` when there is one
-        (fit/context.py :func:`coarsen_nodes`; same widths within ~1 um)."""
-        return self.simulate(ctx.physics or ctx, theta).widths_mm
+        (fit/context.py :func:`coarsen_nodes`; same widths within ~1 um), with the fused
+        nozzle + deposit kernel (no per-interval arrays kept; parallel over sets)."""
+        c = ctx.physics or ctx
+        n, pds, ve, ve_per_set, coef, p0 = self._nozzle_inputs(c, theta)
+        area = np.empty((n, c.n_samples))
+        K.kernel("predict", n)(self._mode, ve, ve_per_set, c.dt_s, c.v_head_mm_s, c.h_mm, c.on_track,
+                               coef, c.filament_area_mm2, p0, c.perm, c.lo_pos, c.lo_frac, c.hi_pos,
+                               c.hi_frac, c.win_mm, area)
+        return self._widths(c, area, pds, n)[0]
 
     def flow(self, ctx: SimContext, theta) -> np.ndarray:
         """Volumetric nozzle flow q (n_sets, n_t) mm^3/s at the timeline nodes."""
