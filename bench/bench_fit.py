@@ -1,14 +1,40 @@
-"""Fit bench: recovery, interval calibration and speed on virtual-printer data.
+"""Fit bench (issue 5): recovery, interval calibration, efficiency, peers and speed, on
+virtual-printer data at realistic noise.
 
-Data: the spiral-step pattern printed on the virtual printer, widths + white noise
-(sd 0.01 mm, reported as width_sd_mm) + AR(1) correlated noise (0.01 mm, 1 mm
-correlation length) that the fitter must absorb with sigma_extra and the AR(1) term.
-Seeds run in parallel processes. ``CALIB_BENCH_FIT_SEEDS`` sets the calibration seed
-count (default 40).
+Data: the spiral-step pattern (seed 004) printed on the virtual printer (fit/virtual.py);
+widths + noise drawn from the likelihood's own noise model (fit/likelihood.py): reported
+width_sd 0.01 mm, extra noise sigma_extra 0.01 mm, the standardised residual an AR(1)
+along each track with correlation length 1 mm (phi = exp(-0.25/1) between stations).
+Recovery, calibration, efficiency and peer rows fit the spiral's test track alone (the
+manifest cut to it, as tests/test_fit_cli.py: the frame and labels are ~90 % of the
+timeline and only cost time); the speed rows fit whole patterns as a user would.
+
+Rows
+- recovery: median |tau error| of `pa` over seeds, Bowden and direct drive (<= 3 %);
+- calibration: share of seeds whose 90 % interval holds the truth, every physical
+  parameter of pa, pa+thermal, pa+backpressure (80-97 %; with 40 seeds the binomial
+  sd at 90 % is 4.7 points);
+- efficiency: median over seeds of posterior sd(tau) / Cramer-Rao sd, the CR bound from
+  the Fisher information J^T Sigma^-1 J (J = d width / d tau by central differences at
+  the truth, Sigma the AR(1) covariance of the noise model above) on the same data
+  (<= 1.5; the Gaussian Fisher matrix is block-diagonal between mean and noise
+  parameters, so tau's bound is 1/sqrt(J^T Sigma^-1 J));
+- peers: median |error| of the Duet3D method (fit.peers.duet3d_pa on the same track,
+  first nozzle diameter after each step skipped) and of the OrcaSlicer PA Line ladder
+  (fit.peers.ladder_pa: the ladder printed on the same virtual printer with the same
+  noise, most even line) as a ratio to ours (> 1: ours is more accurate). The truths
+  sit between ladder values, as a real printer's would;
+- speed: wall time of a `pa` fit on ~20,000 samples (<= 15 s) and of the four-parameter
+  nonlinear composition pa+nonlinear+backpressure (<= 60 s).
+
+``CALIB_BENCH_FIT_SEEDS`` sets the calibration seed count (default 40). Seeds run in 2
+processes; progress goes to stderr.
 """
 from __future__ import annotations
 
+import math
 import os
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 
@@ -16,10 +42,38 @@ import numpy as np
 
 from bench.common import Row
 
-TRUTH = {"direct_drive": {"pa.tau_s": 0.04}, "long_bowden": {"pa.tau_s": 0.6}}
+NOISE = {"sd_mm": 0.01, "sigma_extra_mm": 0.01, "corr_len_mm": 1.0}
+#: recovery/peer truths (between Orca ladder values: 0.042|0.044, 0.60|0.62)
+TRUTH = {"direct_drive": {"pa.tau_s": 0.043}, "long_bowden": {"pa.tau_s": 0.61}}
+#: calibration truths (direct drive; data/truths/*.toml values where they fit 12 s of data)
+CAL_TRUTH = {
+    "pa": {"pa.tau_s": 0.043},
+    "pa+thermal": {"pa.tau_s": 0.043, "thermal.a": 0.1, "thermal.tau_s": 3.0},
+    "pa+backpressure": {"pa.tau_s": 0.043, "backpressure.kb": 1.0, "backpressure.w_sat_mm": 0.8},
+}
+SPIRAL = {"speeds": (20.0,), "n_steps": 6, "step_s": (3.0,)}        # 18 s, 1440 samples
+CAL_SPIRAL = {"speeds": (20.0,), "n_steps": 4, "step_s": (3.0,)}    # 12 s, 960 samples
 
 
-def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=4, step_s=(3.0,)):
+def _log(msg):
+    print(f"  bench_fit: {msg}", file=sys.stderr, flush=True)
+
+
+def track_only(man, pad_s: float = 1.0):
+    """``man`` with only its test tracks and the timeline cut to them (+- ``pad_s``)."""
+    from dataclasses import replace
+
+    tl = man.timeline
+    ids = [t.id for t in man.tracks if t.kind == "test"]
+    on = np.flatnonzero(np.isin(tl.track, ids))
+    keep = (tl.t_s >= tl.t_s[on[0]] - pad_s) & (tl.t_s <= tl.t_s[on[-1]] + pad_s)
+    return replace(man, tracks=[t for t in man.tracks if t.kind == "test"], fiducials=[],
+                   labels=[], timeline=tl.slice(keep))
+
+
+def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=6, step_s=(3.0,),
+              trim=True):
+    """(model, ScanData, manifest) of a noisy virtual spiral-step print."""
     from fit.data import scan_from_table
     from fit.model import build_model
     from fit.virtual import print_virtual
@@ -28,62 +82,139 @@ def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=4, step_
 
     prof = load_profile(profile_name)
     _, man = spiral_step.generate(prof, speeds_mm_s=speeds, n_steps=n_steps, step_s=step_s)
+    if trim:
+        man = track_only(man)
     model = build_model(spec, prof)
     t = print_virtual(man, model, values).table
+    t.width_sd_mm[:] = NOISE["sd_mm"]
+    sc = scan_from_table(t, man, f"seed{seed}")
     rng = np.random.default_rng(seed)
-    n = len(t)
-    phi = np.exp(-0.25 / 1.0)
-    e = np.empty(n)
-    e[0] = rng.standard_normal()
-    for i in range(1, n):
-        e[i] = phi * e[i - 1] + np.sqrt(1 - phi * phi) * rng.standard_normal()
-    t.width_sd_mm[:] = 0.01
-    t.width_mm = t.width_mm + 0.01 * rng.standard_normal(n) + 0.01 * e
-    return model, scan_from_table(t, man, f"seed{seed}")
+    phi = np.exp(-sc.gap_mm / NOISE["corr_len_mm"])         # 0 at a track start
+    e = np.empty(sc.n_valid)
+    for i in range(sc.n_valid):
+        u = rng.standard_normal()
+        e[i] = u if i == 0 or phi[i] == 0 else phi[i] * e[i - 1] + math.sqrt(1 - phi[i] ** 2) * u
+    s_tot = math.hypot(NOISE["sd_mm"], NOISE["sigma_extra_mm"])
+    t.width_mm[sc.order] = t.width_mm[sc.order] + s_tot * e
+    sc.y_mm = t.width_mm[sc.order].copy()
+    return model, sc, man
+
+
+def crb_sd(model, sc, values, name="pa.tau_s", rel_h=1e-3) -> float:
+    """Cramer-Rao sd of ``name``: 1/sqrt(J^T Sigma^-1 J), J by central differences at
+    the truth, Sigma the AR(1) covariance of the noise model (whitened exactly)."""
+    m = model.with_values(values)
+    th = m.default_theta()
+    j = m.param_names.index(name)
+    h = rel_h * abs(th[j])
+    pts = np.array([th, th])
+    pts[0, j] += h
+    pts[1, j] -= h
+    pred = m.predict(sc.ctx, pts)[:, sc.order]
+    J = (pred[0] - pred[1]) / (2 * h)
+    s = np.sqrt(sc.sd_mm ** 2 + NOISE["sigma_extra_mm"] ** 2)
+    phi = np.exp(-sc.gap_mm / NOISE["corr_len_mm"])
+    z = J / s
+    zprev = np.concatenate([[0.0], z[:-1]])
+    w = (z - phi * zprev) / np.sqrt(1 - phi * phi)
+    return float(1.0 / math.sqrt(np.sum(w * w)))
 
 
 def _one(job):
+    from fit.peers import duet3d_pa, ladder_pa
     from fit.sampler import fit_mcmc
 
-    profile_name, spec, values, seed, kw = job
-    model, sc = make_data(profile_name, spec, values, seed, **kw)
+    kind, profile_name, spec, values, seed, kw, fit_kw = job
+    model, sc, man = make_data(profile_name, spec, values, seed, **kw)
     t0 = time.perf_counter()
-    r = fit_mcmc(model, sc, seed=seed, progress=False, max_steps=6000, n_loo_draws=50)
-    out = {"time_s": time.perf_counter() - t0, "converged": r.converged, "n": sc.n_valid}
+    r = fit_mcmc(model, sc, seed=seed, progress=False, n_loo_draws=50, **fit_kw)
+    out = {"time_s": time.perf_counter() - t0, "converged": r.converged, "n": sc.n_valid,
+           "steps": r.diagnostics["n_steps"]}
     for name, v in values.items():
         p = r.params[name]
-        out[name] = (p.median, p.ci90[0], p.ci90[1], v)
+        sd = float(np.std(r.samples[:, r.param_names.index(name)]))
+        out[name] = (p.median, p.ci90[0], p.ci90[1], v, sd)
+    if kind == "recovery":
+        tau = values["pa.tau_s"]
+        out["crb_sd"] = crb_sd(model, sc, values)
+        tid = [tr.id for tr in man.tracks if tr.kind == "test"][0]
+        sel = sc.table.track[sc.order] == tid
+        v_mm_s, st = kw.get("speeds", (20.0,))[0], kw.get("step_s", (3.0,))[0]
+        try:
+            out["duet3d"] = duet3d_pa(sc.table.s_mm[sc.order][sel], sc.y_mm[sel], v_mm_s * st, v_mm_s,
+                                      skip_mm=float(man.printer["nozzle_diameter_mm"]))
+        except Exception:          # the method failing on a dataset counts as a miss
+            out["duet3d"] = float("nan")
+        out["ladder"] = ladder_pa(profile_name, values, spec=spec, seed=seed,
+                                  noise_sd_mm=math.hypot(NOISE["sd_mm"], NOISE["sigma_extra_mm"]))
+        out["ours"] = r.params["pa.tau_s"].median
+        out["truth"] = tau
     return out
 
 
-def _run(jobs, workers):
+def _run(jobs, workers, label):
+    t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=workers) as ex:
         res = []
         for i, r in enumerate(ex.map(_one, jobs)):
             res.append(r)
-            print(f"  bench_fit: {i + 1}/{len(jobs)}", flush=True)
+            _log(f"{label} {i + 1}/{len(jobs)} ({time.perf_counter() - t0:.0f} s)")
         return res
+
+
+def _ratio(a, b):
+    return float(a / b) if b > 0 else float("inf")
 
 
 def run() -> list[Row]:
     rows: list[Row] = []
     workers = 2
+    fit_kw = {"max_steps": 4000, "max_time_s": 60.0}
+    n_rec = int(os.environ.get("CALIB_BENCH_FIT_REC_SEEDS", "8"))
     for prof, vals in TRUTH.items():
-        res = _run([(prof, "pa", vals, s, {}) for s in range(6)], workers)
-        err = [abs(r["pa.tau_s"][0] / r["pa.tau_s"][3] - 1) for r in res]
-        med = float(np.median(err)) * 100
-        rows.append(Row("fit", f"pa tau median |error|, {prof}, 6 seeds", med, "%", "<= 3", med <= 3))
+        res = _run([("recovery", prof, "pa", vals, s, SPIRAL, fit_kw) for s in range(n_rec)],
+                   workers, f"recovery {prof}")
+        tau = vals["pa.tau_s"]
+        err = np.array([abs(r["ours"] / tau - 1) for r in res]) * 100
+        med = float(np.median(err))
+        rows.append(Row("fit", f"pa tau median |error|, {prof} (tau {tau:g} s), {n_rec} seeds",
+                        med, "%", "<= 3", med <= 3))
+        eff = float(np.median([r["pa.tau_s"][4] / r["crb_sd"] for r in res]))
+        rows.append(Row("fit", f"pa posterior sd(tau) / Cramer-Rao sd, {prof}, median of {n_rec}",
+                        eff, "x", "<= 1.5", eff <= 1.5))
+        for peer, what in (("duet3d", "Duet3D section-average exp fit"),
+                           ("ladder", "Orca PA Line ladder, most even line")):
+            perr = np.array([abs(r[peer] / tau - 1) if np.isfinite(r[peer]) else np.inf
+                             for r in res]) * 100
+            ratio = _ratio(float(np.median(perr)), med)
+            rows.append(Row("fit", f"{what} median |error| {np.median(perr):.2f} % / ours, {prof}",
+                            ratio, "x", "> 1 (ours better)", ratio > 1))
     n_seeds = int(os.environ.get("CALIB_BENCH_FIT_SEEDS", "40"))
-    res = _run([("direct_drive", "pa", TRUTH["direct_drive"], 1000 + s, {}) for s in range(n_seeds)],
-               workers)
-    cov = float(np.mean([r["pa.tau_s"][1] < r["pa.tau_s"][3] < r["pa.tau_s"][2] for r in res])) * 100
-    rows.append(Row("fit", f"pa 90% interval coverage of tau, {n_seeds} seeds", cov, "%", "80-97",
-                    80 <= cov <= 97))
-    # speed: pa on ~20,000 samples (five 5 s steps at 4 speeds)
-    kw = {"speeds": (15.0, 20.0, 25.0, 30.0), "n_steps": 10, "step_s": (5.0,)}
-    r = _one(("direct_drive", "pa", TRUTH["direct_drive"], 7, kw))
+    # capped chains (reported as not converged) keep 120 fits within minutes; coverage is
+    # about calibration, so it is counted over every seed, converged or not
+    cal_kw = {"max_steps": 3000, "max_time_s": 15.0}
+    for spec, vals in CAL_TRUTH.items():
+        res = _run([("calibration", "direct_drive", spec, vals, 1000 + s, CAL_SPIRAL, cal_kw)
+                    for s in range(n_seeds)], workers, f"coverage {spec}")
+        n_conv = sum(r["converged"] for r in res)
+        for name, v in vals.items():
+            cov = float(np.mean([r[name][1] < v < r[name][2] for r in res])) * 100
+            rows.append(Row("fit", f"{spec}: 90% interval coverage of {name}, {n_seeds} seeds "
+                                   f"({n_conv} converged)", cov, "%", "80-97", 80 <= cov <= 97))
+    # speed: pa on ~20,000 samples (whole pattern: four spirals, ten 5 s steps)
+    kw = {"speeds": (15.0, 20.0, 25.0, 30.0), "n_steps": 10, "step_s": (5.0,), "trim": False}
+    r = _one(("speed", "direct_drive", "pa", {"pa.tau_s": 0.043}, 7, kw, {}))
+    _log(f"speed pa {r['time_s']:.1f} s")
     rows.append(Row("fit", f"pa fit wall time, {r['n']} samples (converged={r['converged']})",
-                    r["time_s"], "s", "<= 15", r["time_s"] <= 15))
+                    r["time_s"], "s", "<= 15", r["time_s"] <= 15 and r["converged"]))
+    vals4 = {"pa.tau_s": 0.043, "nonlinear.n": 0.8, "backpressure.kb": 1.0,
+             "backpressure.w_sat_mm": 0.8}
+    kw = {"speeds": (15.0, 30.0), "n_steps": 6, "step_s": (3.0,), "trim": False}
+    r = _one(("speed", "direct_drive", "pa+nonlinear+backpressure", vals4, 8, kw, {}))
+    _log(f"speed 4-param {r['time_s']:.1f} s")
+    rows.append(Row("fit", f"pa+nonlinear+backpressure (4 params) fit wall time, {r['n']} samples "
+                           f"(converged={r['converged']})", r["time_s"], "s", "<= 60",
+                    r["time_s"] <= 60 and r["converged"]))
     return rows
 
 
