@@ -12,12 +12,14 @@ cumulative deposited volume V(s) along the track is evaluated at the window boun
 s_i -+ d/2 (d = nozzle diameter, clipped to the printed part of the track) and
 
     A_i = (V(s_i + d/2) - V(s_i - d/2)) / L_i,   L_i = clipped window length (mm)
+    (inside an interval the deposit follows the outflow, linear between its two nodes)
     w_i = bead_width_mm(A_i, h_i)                   (fit.geometry, rounded rectangle)
 
 which conserves volume exactly. Flow while the nozzle is on no track is dribble.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -30,8 +32,9 @@ from patterns.manifest import Manifest, Samples, Timeline, sample_points
 #: Physics timeline coarsening (:func:`coarsen_nodes`): a merged interval lays at most
 #: COARSE_DS_MM of bead and lasts at most COARSE_DT_S; the commanded extruder velocity
 #: and head speed stay within COARSE_RTOL (relative) of the first merged interval; no
-#: merging within COARSE_GUARD_S after a change of command, head speed, track or height
-#: (fast transients of a direct drive, tau ~0.02 s, keep the planner's resolution).
+#: merging within COARSE_GUARD_S (longer for large jumps) after a change of command,
+#: head speed, track or height by more than COARSE_GUARD_RTOL (fast transients of a
+#: direct drive, tau ~0.02 s, keep the planner's resolution).
 COARSE_DS_MM = 0.25
 COARSE_DT_S = 0.05
 COARSE_RTOL = 1e-3
@@ -212,7 +215,7 @@ class SimContext:
 
 
 @njit(cache=True)
-def _coarsen_kernel(dt, ve, vh, ds, h, on, trk_int, trk_node, ds_max, dt_max, rtol, guard_s, guard_rtol):
+def _coarsen_kernel(dt, ve, vnode, vh, ds, h, on, trk_int, trk_node, ds_max, dt_max, rtol, guard_s, guard_rtol):
     n = dt.shape[0]
     keep = np.empty(n + 1, np.int64)
     keep[0] = 0
@@ -220,23 +223,29 @@ def _coarsen_kernel(dt, ve, vh, ds, h, on, trk_int, trk_node, ds_max, dt_max, rt
     g0 = 0
     tsum = dt[0]
     dsum = ds[0]
-    since = 0.0            # time since the last change of command / speed / track / height
+    until = 0.0            # no merging before this time (after a change)
+    t = dt[0]
     for k in range(1, n):
         changed = (on[k] != on[k - 1] or trk_int[k] != trk_int[k - 1] or h[k] != h[k - 1]
                    or abs(ve[k] - ve[k - 1]) > guard_rtol * max(abs(ve[k - 1]), 1e-6)
                    or (on[k] and abs(vh[k] - vh[k - 1]) > guard_rtol * max(abs(vh[k - 1]), 1e-6)))
         if changed:
-            since = 0.0
-        ok = (not changed) and since >= guard_s and on[k] == on[g0] and trk_int[k] == trk_int[g0] \
+            # transients after a jump of relative size R last ~ tau ln(R): guard longer
+            r = abs(ve[k] - ve[k - 1]) / max(abs(ve[k]), 0.1 * abs(ve[k - 1]), 1e-6)
+            if on[k]:
+                r = max(r, abs(vh[k] - vh[k - 1]) / max(abs(vh[k]), 0.1 * abs(vh[k - 1]), 1e-6))
+            until = max(until, t + guard_s * (1.0 + math.log1p(min(r, 1e3))))
+        ok = (not changed) and t >= until and on[k] == on[g0] and trk_int[k] == trk_int[g0] \
             and h[k] == h[g0] and tsum + dt[k] <= dt_max \
-            and abs(ve[k] - ve[g0]) <= rtol * max(abs(ve[g0]), 1e-6)
+            and abs(ve[k] - ve[g0]) <= rtol * max(abs(ve[g0]), 1e-6) \
+            and abs(vnode[k + 1] - vnode[g0]) <= rtol * max(abs(vnode[g0]), 1e-6)
         if ok and on[g0]:
             ok = dsum + ds[k] <= ds_max and abs(vh[k] - vh[g0]) <= rtol * max(abs(vh[g0]), 1e-6)
         if ok and not on[g0]:
             # merged travel must stay off-track: its end nodes on one track would make it a
             # track interval
             ok = not (trk_node[g0] == trk_node[k + 1] and trk_node[g0] >= 0)
-        since += dt[k]
+        t += dt[k]
         if ok:
             tsum += dt[k]
             dsum += ds[k]
@@ -258,9 +267,12 @@ def coarsen_nodes(ctx: "SimContext", trk_node, ds_max_mm: float = COARSE_DS_MM,
 
     Consecutive intervals merge while nothing the physics needs changes: same track (or
     both off-track, and the merged travel does not start and end on one track), same layer
-    height, commanded extruder velocity and (on a track) head speed within ``rtol`` of the
+    height, commanded extruder velocity (per interval, and the planner's velocity at the
+    nodes, which firmware PA differentiates) and (on a track) head speed within ``rtol`` of the
     first merged interval, at most ``ds_max_mm`` of bead and ``dt_max_s`` per merged
-    interval, and not within ``guard_s`` after a change. The e_mm increments add, so the
+    interval, and not within guard_s * (1 + ln(1 + R)) after a change of relative size R
+    (> ``guard_rtol``) of command or head speed (or of track / height): the transient of a
+    fast extruder (tau ~0.02 s) after a jump by R decays like R exp(-t/tau). The e_mm increments add, so the
     commanded volume is conserved exactly; the deposit maps keep a spatial resolution of
     ``ds_max_mm`` (the planner's own bound). The exact linear step is exact on the merged
     intervals; the nonlinear theta step is second order in dt/tau_loc.
@@ -268,6 +280,7 @@ def coarsen_nodes(ctx: "SimContext", trk_node, ds_max_mm: float = COARSE_DS_MM,
     dt = np.ascontiguousarray(ctx.dt_s, dtype=float)
     ds = ctx.v_head_mm_s * dt
     return _coarsen_kernel(dt, np.ascontiguousarray(ctx.ve_mm_s, float),
+                           np.ascontiguousarray(ctx.ve_node_mm_s, float),
                            np.ascontiguousarray(ctx.v_head_mm_s, float), ds,
                            np.ascontiguousarray(ctx.h_mm, float), np.ascontiguousarray(ctx.on_track),
                            np.ascontiguousarray(ctx.track, np.int64),

@@ -398,10 +398,10 @@ def predict_kernel(mode, ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, perm,
     n_int = dt.shape[0]
     for i in prange(n_sets):
         out = np.empty(n_int)
-        vn = np.empty(1)
+        vn = np.empty(n_int + 1)
         cbuf = np.empty(max(perm.shape[0], 1))
-        _nozzle_row(mode, ve, i * ve_per_set, dt, vhead, hgt, on, coef[i], af, p0[i], out, vn, False)
-        _deposit_row(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], cbuf)
+        _nozzle_row(mode, ve, i * ve_per_set, dt, vhead, hgt, on, coef[i], af, p0[i], out, vn, True)
+        _deposit_row(out, vn, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], cbuf)
 
 
 @njit(cache=True)
@@ -424,8 +424,20 @@ def play_operator(e, width, out):
 
 
 @njit(cache=True)
-def _deposit_row(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area, c):
-    """One parameter set of :func:`deposit_kernel`; c is a scratch array (len(perm),)."""
+def _placed(f, r0, r1):
+    """Fraction of an interval's deposit laid before fraction f of its arc length when
+    the outflow varies linearly from r0 to r1 over it (head speed constant within the
+    interval): F(f) = (r0 f + (r1 - r0) f^2 / 2) / ((r0 + r1) / 2); f if no flow."""
+    sm = r0 + r1
+    if sm <= 0.0 or r0 == r1:
+        return f
+    return f * (2.0 * r0 + (r1 - r0) * f) / sm
+
+
+@njit(cache=True)
+def _deposit_row(out, vn, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area, c):
+    """One parameter set of :func:`deposit_kernel`; vn (n_int+1,) outflow at the nodes,
+    c a scratch array (len(perm),)."""
     m = perm.shape[0]
     n_s = lo_pos.shape[0]
     if m == 0:
@@ -440,22 +452,26 @@ def _deposit_row(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area, c):
         if win[k] > 1e-9:
             a = lo_pos[k]
             b = hi_pos[k]
-            v_lo = c[a] - (1.0 - lo_frac[k]) * out[perm[a]] * af
-            v_hi = c[b] - (1.0 - hi_frac[k]) * out[perm[b]] * af
+            ia = perm[a]
+            ib = perm[b]
+            v_lo = c[a] - (1.0 - _placed(lo_frac[k], vn[ia], vn[ia + 1])) * out[ia] * af
+            v_hi = c[b] - (1.0 - _placed(hi_frac[k], vn[ib], vn[ib + 1])) * out[ib] * af
             area[k] = (v_hi - v_lo) / win[k]
         else:
             area[k] = 0.0
 
 
-def deposit_kernel(out, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area):
+def deposit_kernel(out, vn_node, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area):
     """Cross-section A_i (mm^2) over the station windows (fit/context.py):
-    V(s_b) = C[pos] - (1 - frac) * dV[perm[pos]],  C = cumsum(dV[perm]),  dV = Af * out,
-    A_i = (V(hi_i) - V(lo_i)) / win_i."""
+    V(s_b) = C[pos] - (1 - F(frac)) * dV[perm[pos]],  C = cumsum(dV[perm]),  dV = Af * out,
+    A_i = (V(hi_i) - V(lo_i)) / win_i, with F (:func:`_placed`) placing each interval's
+    deposit along its arc length by the outflow at its two nodes (linear in between:
+    second order in dt/tau, where a uniform placement is first order)."""
     n_sets = out.shape[0]
     m = perm.shape[0]
     for i in prange(n_sets):
         c = np.empty(max(m, 1))
-        _deposit_row(out[i], perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], c)
+        _deposit_row(out[i], vn_node[i], perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], c)
 
 
 def bead_width_kernel(area, h, h_per_set, printed, out):

@@ -226,20 +226,20 @@ class Model:
         x_end = np.zeros(n)
         K.kernel("nozzle", n)(self._mode, ve, ve_per_set, ctx.dt_s, ctx.v_head_mm_s, ctx.h_mm,
                               ctx.on_track, coef, ctx.filament_area_mm2, p0, out, vn, p_end, x_end)
-        area = self._deposit(ctx, out)
+        area = self._deposit(ctx, out, vn)
         w, h = self._widths(ctx, area, pds, n)
         return Simulation(out_mm=out, vn_node_mm_s=vn, ve_mm_s=np.broadcast_to(ve, (n, n_int)),
                           p_end_mm=p_end, x_end_mm_s=x_end,
                           widths_mm=w, height_mm=np.broadcast_to(h, area.shape), area_mm2=area)
 
     @staticmethod
-    def _deposit(ctx: SimContext, out: np.ndarray) -> np.ndarray:
+    def _deposit(ctx: SimContext, out: np.ndarray, vn: np.ndarray) -> np.ndarray:
         """Cross-section A_i (mm^2) over the one-nozzle windows (fit/context.py)."""
         n = out.shape[0]
         if len(ctx.perm) == 0:
             return np.zeros((n, ctx.n_samples))
         area = np.empty((n, ctx.n_samples))
-        K.kernel("deposit", n)(out, ctx.perm, ctx.lo_pos, ctx.lo_frac, ctx.hi_pos, ctx.hi_frac, ctx.win_mm,
+        K.kernel("deposit", n)(out, vn, ctx.perm, ctx.lo_pos, ctx.lo_frac, ctx.hi_pos, ctx.hi_frac, ctx.win_mm,
                          ctx.filament_area_mm2, area)
         return area
 
