@@ -30,15 +30,16 @@ from fit.geometry import filament_area_mm2
 from patterns.manifest import Manifest, Samples, Timeline, sample_points
 
 #: Physics timeline coarsening (:func:`coarsen_nodes`): a merged interval lays at most
-#: COARSE_DS_MM of bead and lasts at most COARSE_DT_S; the commanded extruder velocity
+#: COARSE_DS_MM of bead (one nozzle diameter, the station window; the deposit inside an
+#: interval follows the outflow at its nodes) and lasts at most COARSE_DT_S; the commanded extruder velocity
 #: and head speed stay within COARSE_RTOL (relative) of the first merged interval; no
 #: merging within COARSE_GUARD_S (longer for large jumps) after a change of command,
 #: head speed, track or height by more than COARSE_GUARD_RTOL (fast transients of a
 #: direct drive, tau ~0.02 s, keep the planner's resolution).
-COARSE_DS_MM = 0.25
+COARSE_DS_MM = 0.4
 COARSE_DT_S = 0.05
 COARSE_RTOL = 1e-3
-COARSE_GUARD_S = 0.1
+COARSE_GUARD_S = 0.05
 COARSE_GUARD_RTOL = 0.05
 
 PROFILE_KEYS = ("filament_diameter_mm", "nozzle_diameter_mm", "nozzle_land_length_mm",
