@@ -31,10 +31,13 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-def fig_tracks(obs, fits, max_tracks: int = 12):
-    """Data and every model's width along each track (top), residuals (bottom), in mm."""
-    smp = obs.samples
-    tids = list(dict.fromkeys(smp.track.tolist()))[:max_tracks]
+def fig_tracks(scan, fits, max_tracks: int = 12):
+    """Data and every model's width along each track (top), residuals (bottom), in mm.
+
+    ``scan``: :class:`fit.data.ScanData`; ``fits``: :class:`fit.compare.ModelFit` (their
+    ``pred_mm``/``resid_mm`` are in the scan's valid-sample order)."""
+    track, s_all = scan.track_valid, scan.s_valid_mm
+    tids = list(dict.fromkeys(track.tolist()))[:max_tracks]
     ncol = min(3, len(tids))
     nrow = int(np.ceil(len(tids) / ncol))
     fig, axes = plt.subplots(2 * nrow, ncol, figsize=(5 * ncol, 3.2 * nrow), squeeze=False,
@@ -42,9 +45,9 @@ def fig_tracks(obs, fits, max_tracks: int = 12):
     for i, tid in enumerate(tids):
         r, c = 2 * (i // ncol), i % ncol
         ax, axr = axes[r, c], axes[r + 1, c]
-        m = smp.track == tid
-        s = smp.s_mm[m]
-        ax.plot(s, obs.width_mm[m], ".", ms=2, color=DATA_COLOUR, label="measured")
+        m = track == tid
+        s = s_all[m]
+        ax.plot(s, scan.y_mm[m], ".", ms=2, color=DATA_COLOUR, label="measured")
         for j, f in enumerate(fits):
             col = COLOURS[j % len(COLOURS)]
             ax.plot(s, f.pred_mm[m], "-", lw=1.2, color=col, label=f.spec)
@@ -63,9 +66,9 @@ def fig_tracks(obs, fits, max_tracks: int = 12):
     return fig
 
 
-def plot_tracks(obs, fits, out_dir) -> Path:
+def plot_tracks(scan, fits, out_dir) -> Path:
     path = Path(out_dir) / "compare_tracks.png"
-    atomic_write_bytes(path, _png(fig_tracks(obs, fits)))
+    atomic_write_bytes(path, _png(fig_tracks(scan, fits)))
     return path
 
 
@@ -101,7 +104,7 @@ def fig_candidates(diag):
     fig, ax = plt.subplots(figsize=(6, 0.35 * len(cs) + 1))
     vals = [max(c.delta_bic, 0.1) for c in cs]
     ax.barh([c.effect for c in cs][::-1], vals[::-1],
-            color=[COLOURS[1] if c.delta_bic_eff > 10 else DATA_COLOUR for c in cs][::-1])
+            color=[COLOURS[1] if c.delta_bic > 10 else DATA_COLOUR for c in cs][::-1])
     ax.set_xscale("log")
     ax.set_xlabel("drop in BIC when added (blue: supported)")
     fig.tight_layout()
@@ -109,10 +112,10 @@ def fig_candidates(diag):
 
 
 def fig_corner(fit):
-    """Corner plot of a full fit's posterior draws."""
+    """Corner plot of a full fit's posterior draws (:class:`fit.compare.ModelFit` with ``full``)."""
     import corner
-    names = fit.names + ["noise.extra_mm"]
-    fig = corner.corner(fit.draws, labels=names, quantiles=[0.16, 0.5, 0.84], show_titles=True,
+    fig = corner.corner(fit.full.samples, labels=list(fit.full.param_names),
+                        quantiles=[0.16, 0.5, 0.84], show_titles=True,
                         title_fmt=".3g", title_kwargs={"fontsize": 8})
     return fig
 
@@ -169,7 +172,7 @@ def build_report(title: str, obs=None, comparison=None, diagnosis=None, compare_
             _img(_png(fig_covariate(diagnosis, s)), s.name, "48%") for s in diagnosis.covariates[:4])
             + "</div>")
     if comparison is not None:
-        full = [f for f in comparison.fits if f.draws is not None]
+        full = [f for f in comparison.fits if f.full is not None]
         if full:
             parts.append("<h2>Posterior (corner plots)</h2><div class='grid'>")
             parts += [f"<div><p>{html.escape(f.spec)}</p>{_img(_png(fig_corner(f)), f.spec)}</div>"
@@ -198,11 +201,11 @@ def _compare_table(rows) -> str:
 
 
 def _candidate_table(cands) -> str:
-    out = ["<table><tr><th>effect added</th><th>drop in BIC</th><th>corrected</th>"
+    out = ["<table><tr><th>effect added</th><th>drop in BIC</th>"
            "<th>RMS after (um)</th><th>chi2_nu after</th></tr>"]
     for c in cands:
         out.append(f"<tr><td>{html.escape(c['effect'])}{' (yours)' if c.get('user') else ''}</td>"
-                   f"<td>{_fmt(c['delta_bic'])}</td><td>{_fmt(c.get('delta_bic_eff'))}</td>"
+                   f"<td>{_fmt(c['delta_bic'])}</td>"
                    f"<td>{_fmt(None if c['rms_mm_after'] is None else 1000 * c['rms_mm_after'])}</td>"
                    f"<td>{_fmt(c.get('chi2_nu_after'), '{:.2f}')}</td></tr>")
     return "".join(out) + "</table>"

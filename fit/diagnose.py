@@ -5,12 +5,14 @@ Three pieces of evidence (shared/REFERENCE.md "Finding a missing term"):
 1. Residual structure: the fitted model's residuals scored against physical covariates
    of the timeline (:mod:`fit.covariates`), best first.
 2. Candidate effects: every library effect not in the model (and every user effect from
-   ``--effects``) is added in turn and fitted by maximum likelihood; candidates are
+   ``--effects``) is added in turn and fitted (MAP, :func:`fit.compare.fit_model` over
+   :func:`fit.sampler.fit_map`, warm-started at the model's optimum); candidates are
    ranked by the drop in BIC, Delta BIC = BIC(model) - BIC(model + effect) (> 10 is
-   "very strong" on the Kass & Raftery 1995 scale). Because residuals of a wrong model
-   are correlated along a track, the drop is also given scaled by n_eff / n
-   (:func:`fit.compare.effective_n`), and the verdict uses the scaled value.
-   Optionally the top few are confirmed by a full fit and PSIS-LOO.
+   "very strong" on the Kass & Raftery 1995 scale). The likelihood is the engine's AR(1)
+   one (:mod:`fit.likelihood`): residuals of a wrong model are correlated along a track
+   and the AR(1) term says so inside ln L, so the BIC needs no n_eff/n correction
+   (``delta_bic_eff`` is kept in the JSON, equal to ``delta_bic``). Optionally the top
+   few are confirmed by a full fit (:func:`fit.sampler.fit_mcmc`) and PSIS-LOO.
 3. The verdict: the most likely missing effect, the covariate evidence that agrees with
    it, RMS and reduced chi-square before and after, and the command that fits it.
 """
@@ -20,7 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fit.compare import FitSummary, Observed, mcmc_fit, ml_fit, _warm_start
+from fit.compare import ModelFit, delta_elpd, fit_model, full_fit
+from fit.data import ScanData
 from fit.covariates import CovariateScore, Covariates, compute_covariates, score_covariates
 
 #: Effects never proposed as "missing": firmware_pa is a known input transform (it is
@@ -31,7 +34,7 @@ NOT_CANDIDATES = frozenset({"firmware_pa"})
 EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
     "pa": ("time_since_flow_change_s", "accel_mm_s2"),
     "thermal": ("time_since_stop_s", "last_stop_duration_s", "time_since_flow_change_s"),
-    "backpressure": ("width_nominal_mm"),
+    "backpressure": ("width_nominal_mm",),
     "nonlinear": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
     "bernoulli": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
     "backlash": ("time_since_stop_s", "time_since_flow_change_s", "e_mm"),
@@ -41,7 +44,7 @@ EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
     "heading": ("heading_rad",),
 }
 
-#: Delta BIC (scaled by n_eff/n) above which an effect is called supported.
+#: Delta BIC (AR(1) likelihood) above which an effect is called supported.
 SUPPORTED_DELTA_BIC = 10.0
 
 
@@ -50,7 +53,9 @@ class Candidate:
     """One effect added to the model and fitted.
 
     delta_bic = BIC(model) - BIC(model + effect) (positive: the effect helps);
-    delta_bic_eff = delta_bic * n_eff / n; rms_mm_after, chi2_nu_after: of the extended fit.
+    delta_bic_eff: equal to delta_bic (kept for readers of old files; the AR(1) likelihood
+    already accounts for correlated residuals); rms_mm_after, chi2_nu_after: of the
+    extended fit (chi2_nu against the measurement sd only).
     """
 
     effect: str
@@ -60,7 +65,7 @@ class Candidate:
     rms_mm_after: float
     chi2_nu_after: float
     user: bool = False
-    fit: FitSummary | None = field(default=None, repr=False)
+    fit: ModelFit | None = field(default=None, repr=False)
     delta_elpd_loo: float = float("nan")
     delta_elpd_loo_se: float = float("nan")
     error: str = ""
@@ -69,7 +74,7 @@ class Candidate:
 @dataclass
 class Diagnosis:
     model: str
-    base: FitSummary
+    base: ModelFit
     covariates: list[CovariateScore]
     candidates: list[Candidate]
     cov: Covariates = field(repr=False)
@@ -119,34 +124,37 @@ def candidate_names(spec: str, library: list[str], user: list[str] = ()) -> list
     return out
 
 
-def diagnose(obs: Observed, spec: str, build, library: list[str], user: list[str] = (),
+def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[str] = (),
              confirm_top: int = 0, seed: int = 0, n_null: int = 200, progress: bool = False,
-             base: FitSummary | None = None, command_prefix: str = "calib fit WIDTHS --manifest M",
-             effects_arg: str = "") -> Diagnosis:
-    """Diagnose ``spec`` on ``obs``.
+             base: ModelFit | None = None, command_prefix: str = "calib fit WIDTHS --manifest M",
+             effects_arg: str = "", n_random: int = 24, n_polish: int = 3,
+             max_steps: int = 20000) -> Diagnosis:
+    """Diagnose ``spec`` on ``scan`` (:func:`fit.compare.observe`).
 
     build(spec) -> Model (e.g. ``lambda s: build_model(s, profile, extra_effects)``);
     library: names of library effects (``fit.effects.REGISTRY``); user: names of user
-    effects. ``confirm_top`` > 0 runs a full fit (emcee + PSIS-LOO) of the base model and
-    of that many best candidates.
+    effects. ``n_random``/``n_polish``: starts screened/optimised per MAP fit
+    (:func:`fit.compare.fit_model`). ``confirm_top`` > 0 runs a full fit (emcee to
+    convergence, at most ``max_steps`` steps, + PSIS-LOO) of the base model and of that
+    many best candidates.
     """
     from tqdm import tqdm
 
     model = build(spec)
+    fit_kw = dict(n_random=n_random, n_polish=n_polish, seed=seed)
     if base is None:
-        base = ml_fit(model, obs, spec=spec, seed=seed)
-    smp = obs.samples
-    cov = compute_covariates(obs.manifest, smp.track, smp.s_mm, smp.t_s, smp.x_mm, smp.y_mm)
-    std_resid = base.resid_mm
-    scores = score_covariates(std_resid, cov, track=smp.track, n_null=n_null, seed=seed)
+        base = fit_model(model, scan, spec, **fit_kw)
+    smp, o = scan.samples, scan.order
+    cov = compute_covariates(scan.manifest, smp.track[o], smp.s_mm[o], smp.t_s[o], smp.x_mm[o],
+                             smp.y_mm[o])
+    scores = score_covariates(base.resid_mm, cov, track=smp.track[o], n_null=n_null, seed=seed)
 
     names = candidate_names(spec, library, user)
     cands: list[Candidate] = []
     for name in tqdm(names, desc="candidates", disable=not progress):
         ext = f"{spec}+{name}"
         try:
-            m = build(ext)
-            f = ml_fit(m, obs, spec=ext, theta0=_warm_start(m, [base]), seed=seed)
+            f = fit_model(build(ext), scan, ext, warm=[base], **fit_kw)
         except Exception as exc:  # a user effect that fails must not hide the others
             if name not in user:
                 raise
@@ -154,20 +162,16 @@ def diagnose(obs: Observed, spec: str, build, library: list[str], user: list[str
                                    float("nan"), user=True, error=f"{type(exc).__name__}: {exc}"))
             continue
         d = base.bic - f.bic
-        scale = base.n_eff / base.n if np.isfinite(base.n_eff) and base.n else 1.0
-        cands.append(Candidate(name, ext, d, d * scale, f.rms_mm, f.chi2_nu, user=name in user, fit=f))
+        cands.append(Candidate(name, ext, d, d, f.rms_mm, f.chi2_nu, user=name in user, fit=f))
     cands.sort(key=lambda c: -c.delta_bic if np.isfinite(c.delta_bic) else np.inf)
 
     if confirm_top and cands:
-        base_full = mcmc_fit(model, obs, base, seed=seed)
+        base = full_fit(base, seed=seed, max_steps=max_steps, progress=progress)
         for c in cands[:confirm_top]:
             if c.fit is None:
                 continue
-            c.fit = mcmc_fit(build(c.spec), obs, c.fit, seed=seed)
-            d = c.fit.elpd_i - base_full.elpd_i
-            c.delta_elpd_loo = float(np.sum(d))
-            c.delta_elpd_loo_se = float(np.sqrt(len(d) * np.var(d)))
-        base = base_full
+            c.fit = full_fit(c.fit, seed=seed, max_steps=max_steps, progress=progress)
+            c.delta_elpd_loo, c.delta_elpd_loo_se = delta_elpd(c.fit, base)
 
     diag = Diagnosis(model=spec, base=base, covariates=scores, candidates=cands, cov=cov)
     _verdict(diag, command_prefix, effects_arg)
@@ -182,10 +186,11 @@ def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
                f"{top_cov.p_value:.3g})") if top_cov and top_cov.score > 0 else \
         "no covariate explains the residuals better than chance"
     head = (f"Model {d.model}: RMS {1000 * b.rms_mm:.1f} um, reduced chi-square {b.chi2_nu:.2f} "
-            f"over {b.n} samples (n_eff {b.n_eff:.0f}).")
-    ok = [c for c in d.candidates if np.isfinite(c.delta_bic_eff)]
+            f"over {b.n} samples (residual correlation length {b.corr_len_mm:.2g} mm, "
+            f"n_eff {b.n_eff:.0f}).")
+    ok = [c for c in d.candidates if np.isfinite(c.delta_bic)]
     best = ok[0] if ok else None
-    if best is not None and best.delta_bic_eff > SUPPORTED_DELTA_BIC:
+    if best is not None and best.delta_bic > SUPPORTED_DELTA_BIC:
         d.best = best.effect
         agree = [s for s in d.covariates[:5] if s.name in EFFECT_COVARIATES.get(best.effect, ())]
         ev = (f"; consistent with the residual pattern: {agree[0].name} scores {agree[0].score:.2f}"
@@ -198,8 +203,7 @@ def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
         if np.isfinite(best.delta_elpd_loo):
             loo = f", PSIS-LOO gains {best.delta_elpd_loo:.1f} +- {best.delta_elpd_loo_se:.1f}"
         d.verdict = (f"{head} Most likely missing: {best.effect}. Adding it lowers BIC by "
-                     f"{best.delta_bic:.1f} ({best.delta_bic_eff:.1f} after the correlation "
-                     f"correction){loo}{ev}. RMS falls from {1000 * b.rms_mm:.1f} to "
+                     f"{best.delta_bic:.1f}{loo}{ev}. RMS falls from {1000 * b.rms_mm:.1f} to "
                      f"{1000 * best.rms_mm_after:.1f} um, reduced chi-square from {b.chi2_nu:.2f} "
                      f"to {best.chi2_nu_after:.2f}.{runner} Fit it with: {d.command}")
         if best.chi2_nu_after > 2.0:

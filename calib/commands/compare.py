@@ -10,7 +10,8 @@ from calib.errors import UserError
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "compare", help="fit several models to one widths table and compare them",
-        description="Fit each model (maximum likelihood, then emcee + PSIS-LOO unless --fast) to "
+        description="Fit each model (MAP with the AR(1) likelihood of `calib fit`, then emcee "
+                    "run to convergence + PSIS-LOO unless --fast) to "
                     "the measured widths and print a table: residual RMS (mm), reduced "
                     "chi-square, BIC, PSIS-LOO elpd and its se, the differences to the best "
                     "model, and each model's parameters. Plots of data vs every model and the "
@@ -21,8 +22,10 @@ def add_parser(subparsers):
                    help="models to compare, e.g. pa pa+thermal pa+thermal+backpressure")
     p.add_argument("--effects", metavar="FILE.py",
                    help="a Python file with your own Effect classes, usable in --models")
-    p.add_argument("--fast", action="store_true", help="maximum likelihood only (no emcee, no LOO)")
-    p.add_argument("--steps", type=int, default=600, help="emcee steps per walker after burn-in")
+    p.add_argument("--fast", action="store_true", help="MAP fits only (no emcee, no LOO)")
+    p.add_argument("--steps", type=int, default=20000,
+                   help="cap on emcee steps per walker (the run stops earlier once it has "
+                        "converged; a run that hits the cap is reported as not converged)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("-o", "--output", metavar="compare.json", help="write the comparison as JSON")
     p.add_argument("--plots", metavar="DIR", help="write data-vs-models and residual plots here")
@@ -48,15 +51,15 @@ def run(args) -> int:
     from fit.model import build_model
 
     manifest, table, extra = load_inputs(args.widths, args.manifest, args.effects)
-    if args.steps < 50:
-        raise UserError("--steps must be at least 50")
+    if args.steps < 200:
+        raise UserError("--steps must be at least 200 (emcee needs ~50 autocorrelation times)")
     models = {}
     for spec in args.models:
         if spec in models:
             raise UserError(f"model {spec} is listed twice in --models")
         models[spec] = build_model(spec, manifest.printer, extra_effects=extra)
     obs = observe(manifest, table)
-    comp = compare_models(obs, models, full=not args.fast, seed=args.seed, n_steps=args.steps,
+    comp = compare_models(obs, models, full=not args.fast, seed=args.seed, max_steps=args.steps,
                           progress=sys.stderr.isatty())
     print(format_table(comp.rows()))
     doc = comp.to_json()
@@ -73,19 +76,21 @@ def run(args) -> int:
 
 
 def format_table(rows: list[dict]) -> str:
-    head = ("model", "RMS um", "chi2_nu", "BIC", "dBIC", "dBIC_eff", "elpd_loo", "se", "d_elpd", "d_se")
+    head = ("model", "RMS um", "chi2_nu", "BIC", "dBIC", "corr mm", "elpd_loo", "se", "d_elpd", "d_se",
+            "converged")
     lines = []
     for r in rows:
         def f(x, fmt="{:.1f}"):
             return "-" if x is None or x != x else fmt.format(x)
         lines.append((r["model"], f(1000 * r["rms_mm"]), f(r["chi2_nu"], "{:.2f}"), f(r["bic"]),
-                      f(r["delta_bic"]), f(r["delta_bic_eff"]), f(r["elpd_loo"]), f(r["elpd_loo_se"]),
-                      f(r["delta_elpd_loo"]), f(r["delta_elpd_loo_se"])))
+                      f(r["delta_bic"]), f(r.get("corr_len_mm"), "{:.2g}"), f(r["elpd_loo"]),
+                      f(r["elpd_loo_se"]), f(r["delta_elpd_loo"]), f(r["delta_elpd_loo_se"]),
+                      {None: "-", True: "yes", False: "NO"}[r.get("converged")]))
     w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
     out = ["  ".join(h.ljust(x) for h, x in zip(head, w))]
     out += ["  ".join(c.ljust(x) for c, x in zip(l, w)) for l in lines]
     out.append("")
     for r in rows:
-        ps = ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items())
+        ps = ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items() if v is not None)
         out.append(f"{r['model']}: {ps}")
     return "\n".join(out)

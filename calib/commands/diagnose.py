@@ -19,7 +19,8 @@ def add_parser(subparsers):
     p.add_argument("--effects", metavar="FILE.py",
                    help="a Python file with your own Effect classes; they become candidates too")
     p.add_argument("--confirm", type=int, default=0, metavar="N",
-                   help="confirm the N best candidates with a full fit (emcee + PSIS-LOO)")
+                   help="confirm the N best candidates with a full fit (emcee run to "
+                        "convergence + PSIS-LOO)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON on stdout")
     p.add_argument("-o", "--output", metavar="diag.json", help="also write the JSON here")
@@ -69,12 +70,12 @@ def format_diagnosis(doc: dict) -> str:
            "beyond chance):"]
     for c in doc["covariates"][:6]:
         out.append(f"  {c['name']:<28} {c['score']:.3f}   (R^2 {c['r2']:.3f}, p {c['p_value']:.3g})")
-    out += ["", "candidate effects (drop in BIC; after correlation correction; RMS after):"]
+    out += ["", "candidate effects (drop in BIC, AR(1) likelihood; RMS after):"]
     for c in doc["candidates"]:
         if c.get("error"):
             out.append(f"  {c['effect']:<16} failed: {c['error']}")
             continue
-        out.append(f"  {c['effect']:<16} {c['delta_bic']:>10.1f} {c['delta_bic_eff']:>9.1f}   "
+        out.append(f"  {c['effect']:<16} {c['delta_bic']:>10.1f}   "
                    f"{1000 * c['rms_mm_after']:.1f} um  chi2_nu {c['chi2_nu_after']:.2f}"
                    + ("  (your effect)" if c.get("user") else ""))
     out += ["", doc["verdict"]]
