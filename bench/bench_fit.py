@@ -166,8 +166,16 @@ def _ratio(a, b):
     return float(a / b) if b > 0 else float("inf")
 
 
+class _Rows(list):
+    """A list of rows that also logs each row to stderr as it is measured."""
+
+    def append(self, r: Row) -> None:
+        _log(f"ROW {r.metric} = {r.value:.4g} {r.unit} (target {r.target}, ok={r.passed})")
+        super().append(r)
+
+
 def run() -> list[Row]:
-    rows: list[Row] = []
+    rows: list[Row] = _Rows()
     workers = 2
     fit_kw = {"max_steps": 4000, "max_time_s": 60.0}
     n_rec = int(os.environ.get("CALIB_BENCH_FIT_REC_SEEDS", "8"))
@@ -215,7 +223,7 @@ def run() -> list[Row]:
     rows.append(Row("fit", f"pa+nonlinear+backpressure (4 params) fit wall time, {r['n']} samples "
                            f"(converged={r['converged']})", r["time_s"], "s", "<= 60",
                     r["time_s"] <= 60 and r["converged"]))
-    return rows
+    return list(rows)
 
 
 if __name__ == "__main__":
