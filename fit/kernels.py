@@ -301,7 +301,7 @@ def _general_row(ve, iv, dt, vhead, hgt, on, c, af, p0, out, vn_node, want_vn):
             vloc = vn0
             if vloc < 1e-6:
                 vloc = max(0.5 * v, 1e-6)
-            _, dloc = _preq(vloc, c, af, vh, hgt[k], onk)
+            ploc, dloc = _preq(vloc, c, af, vh, hgt[k], onk)
             r = hh / max(dloc, 1e-12)
             if r < 1e-4:
                 th = 0.5 + r / 12.0
@@ -322,8 +322,12 @@ def _general_row(ve, iv, dt, vhead, hgt, on, c, af, p0, out, vn_node, want_vn):
                 lo = 0.0
                 glo = _preq0(c, vh, onk) - b
                 hi = b / cc
-                ghi = _preq(hi, c, af, vh, hgt[k], onk)[0]
-                pv, dv = _preq(max(vn0, 1e-12), c, af, vh, hgt[k], onk)
+                ghi = -1.0          # g(hi) >= 0; evaluated only if a fallback step needs it
+                v0 = max(vn0, 1e-12)
+                if v0 == vloc:
+                    pv, dv = ploc, dloc
+                else:
+                    pv, dv = _preq(v0, c, af, vh, hgt[k], onk)
                 x = (b - pv + dv * vn0) / (dv + cc)
                 if not (lo < x < hi):
                     x = min(max(vn0, 1e-12), 0.5 * hi)
@@ -344,10 +348,14 @@ def _general_row(ve, iv, dt, vhead, hgt, on, c, af, p0, out, vn_node, want_vn):
                         lo = x
                         glo = g
                         if side == -1:
+                            if ghi < 0.0:
+                                ghi = _preq(hi, c, af, vh, hgt[k], onk)[0] + cc * hi - b
                             ghi *= 0.5
                         side = -1
                     xn = x - g / (dg + cc)
                     if not (lo < xn < hi):
+                        if ghi < 0.0:
+                            ghi = _preq(hi, c, af, vh, hgt[k], onk)[0] + cc * hi - b
                         xn = (lo * ghi - hi * glo) / (ghi - glo)
                         if not (lo < xn < hi):
                             xn = 0.5 * (lo + hi)
