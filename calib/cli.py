@@ -18,8 +18,15 @@ VERBS = ("pattern", "plan", "preview", "simulate", "measure", "fit", "batch", "c
          "diagnose", "report", "export", "wizard", "demo")
 
 
+class _OneLineErrors(argparse.ArgumentParser):
+    """argparse prints its usage block on a bad option; we print one line and exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineErrors(
         prog="calib",
         description="Calibrate extruder dynamics: print a test pattern, scan it, fit the physics.",
         epilog="Run `calib VERB --help` for the options of each verb.")

@@ -89,10 +89,13 @@ def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, ca
     from calib.fileio import atomic_write_text
     from fit.truth import load_truth
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from patterns.profile import load_profile
+
+    load_profile(printer)  # a bad printer or truth is one clear line before any work starts
     truth = Path(truth) if truth else _data_dir() / "truths" / "bowden.toml"
     spec_true, values_true, _ = load_truth(truth)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     r = _Runner(out, stream)
     r.say(f"calib demo: the virtual printer '{printer}' runs the hidden truth {truth.name} "
           f"({spec_true}); we fit '{base_model}' and let the diagnosis find what is missing.")

@@ -24,6 +24,18 @@ MAX_PIXELS = 64_000_000
 _BLANK_SPREAD = 0.02
 
 
+def _quiet_imdecode(buf, flags):
+    """cv2.imdecode without OpenCV's own WARN/ERROR lines on stderr: a corrupt file must
+    give the user our one-line error, not decoder chatter."""
+    log = cv2.utils.logging
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imdecode(buf, flags)
+    finally:
+        log.setLogLevel(level)
+
+
 def sniff_format(head: bytes) -> str | None:
     """Format name from the first bytes of a file, or None if not JPEG/PNG/TIFF."""
     for magic, name in _MAGIC:
@@ -55,7 +67,7 @@ def load_image(path) -> tuple[np.ndarray, np.ndarray]:
         raise UserError(f"image {path} is not a JPEG, PNG or TIFF file; export the scan as one of those")
     buf = np.frombuffer(data, dtype=np.uint8)
     # IMREAD_ANYDEPTH keeps 16 bit; IMREAD_COLOR applies EXIF orientation.
-    img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    img = _quiet_imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
     if img is None or img.size == 0:
         raise UserError(f"image {path} is a corrupt or truncated {fmt} file; copy or export it again")
     h, w = img.shape[:2]

@@ -1,0 +1,46 @@
+"""CLI-wide behaviour: every bad input is one line on stderr and exit code 2."""
+import pytest
+
+from calib.cli import VERBS, build_parser, main
+
+
+def test_every_verb_is_registered_with_help():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "verb")
+    assert set(sub.choices) == set(VERBS)
+    for verb, p in sub.choices.items():
+        assert p.description, f"calib {verb} has no description"
+
+
+@pytest.mark.parametrize("argv", [
+    ["fitt"],
+    ["pattern", "spiral-step", "--printer", "adventurer3", "--speeds", "abc", "-o", "x.gcode"],
+    ["measure"],
+])
+def test_usage_errors_are_one_line(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "error:" in err[0] and "--help" in err[0]
+
+
+def test_corrupt_png_gives_our_line_only(tmp_path, capfd):
+    """OpenCV's own decoder warnings (C-level stderr) must not precede our message."""
+    bad = tmp_path / "scan.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really a png" * 10)
+    assert main(["pattern", "spiral-step", "--printer", "adventurer3", "-o", str(tmp_path / "m.gcode")]) == 0
+    man = tmp_path / "m.manifest.json"
+    capfd.readouterr()
+    assert main(["measure", str(bad), "--manifest", str(man), "-o", str(tmp_path / "w.csv")]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "corrupt or truncated PNG" in err[0], err
+    assert not (tmp_path / "w.csv").exists()
+
+
+def test_demo_rejects_unknown_printer_before_any_work(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--printer", "nope", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown printer 'nope'" in err[0]
+    assert not out.exists()
