@@ -413,23 +413,124 @@ def _split_rhat(chains) -> np.ndarray:
     return np.where(np.isfinite(r), r, np.inf)
 
 
+def psis_tail_length(n_draws: int, r_eff: float = 1.0) -> int:
+    """Tail length M = min(0.2 S, 3 sqrt(S / r_eff)) (Vehtari et al. 2024, sec. 3; rounded
+    down, as arviz_stats does)."""
+    if n_draws * r_eff > 225:
+        return int(math.floor(3.0 * math.sqrt(n_draws / r_eff)))
+    return int(math.floor(n_draws / 5))
+
+
+def _gpd_fit_rows(x: np.ndarray, chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Generalized Pareto (k, sigma) of every row of ``x`` (n, M), each row the sorted
+    (ascending) exceedances of one observation over its threshold.
+
+    Zhang & Stephens (2009) profile estimator: a grid of m = 30 + floor(sqrt(M)) values
+
+        b_j = 1/x_(M) + (1 - sqrt(m / (j - 1/2))) / (3 x_(floor(M/4 + 1/2))),
+
+    k(b) = mean_i log(1 - b x_i), profile log-likelihood l(b) = M (log(-b/k) - k - 1),
+    b_hat = sum_j b_j w_j with w = softmax(l) (weights < 10 eps dropped), k = mean log(1 -
+    b_hat x), sigma = -k / b_hat; then the weakly informative prior of PSIS (Vehtari et
+    al. 2024, eq. 17 / loo: normal around 0.5 worth 10 observations):
+    k <- (M k + 10 * 0.5) / (M + 10). Rows of equal values give k = sigma = NaN.
+    """
+    n, M = x.shape
+    m = 30 + int(math.sqrt(M))
+    j = np.arange(1, m + 1, dtype=float)
+    base = 1.0 - np.sqrt(m / (j - 0.5))
+    q = x[:, int(M / 4 + 0.5) - 1]
+    xmax = x[:, -1]
+    k_out = np.full(n, np.nan)
+    s_out = np.full(n, np.nan)
+    ok = (xmax > 0) & (q > 0) & np.all(np.isfinite(x), axis=1)
+    idx = np.flatnonzero(ok)
+    tiny = 10 * np.finfo(float).eps
+    for a in range(0, len(idx), chunk):
+        r = idx[a:a + chunk]
+        xr = x[r]
+        b = base[None, :] / (3.0 * q[r, None]) + 1.0 / xmax[r, None]          # (c, m)
+        kb = np.log1p(-b[:, :, None] * xr[:, None, :]).mean(axis=2)          # (c, m)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ls = M * (np.log(-b / kb) - kb - 1.0)
+        ls = np.where(np.isfinite(ls), ls, -np.inf)
+        w = np.exp(ls - logsumexp(ls, axis=1, keepdims=True))
+        w = np.where(w >= tiny, w, 0.0)
+        w /= w.sum(axis=1, keepdims=True)
+        b_post = (b * w).sum(axis=1)
+        k = np.log1p(-b_post[:, None] * xr).mean(axis=1)
+        s_out[r] = -k / b_post
+        k_out[r] = (M * k + 10 * 0.5) / (M + 10)
+    return k_out, s_out
+
+
+def psis_log_weights(log_ratios, r_eff: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pareto smoothed importance sampling (Vehtari, Simpson, Gelman, Yao & Gabry 2024,
+    JMLR 25(72)) for all rows of ``log_ratios`` (n_obs, S) at once.
+
+    Per row: the M = :func:`psis_tail_length` largest raw weights r = exp(lr - max lr) are
+    replaced by the expected order statistics of a generalized Pareto fitted to their
+    exceedances over the (M+1)-th largest weight u (:func:`_gpd_fit_rows`),
+
+        r_(S-M+z) = u + sigma/k ((1 - p_z)^(-k) - 1),   p_z = (z - 1/2)/M,  z = 1..M,
+
+    truncated at the largest raw weight; returned normalised (logsumexp 0 per row) with
+    the Pareto k per row. Rows whose tail cannot be fitted (M < 5, all tail values equal)
+    keep their raw weights and get k = NaN. Same numbers as arviz_stats' per-observation
+    ``psislw`` (tests/test_fit_loo.py), ~50x faster on 8,000 x 400.
+    """
+    lr = np.asarray(log_ratios, dtype=float)
+    lr = lr - lr.max(axis=1, keepdims=True)
+    n, S = lr.shape
+    M = psis_tail_length(S, r_eff)
+    khat = np.full(n, np.nan)
+    if M >= 5 and S > M:
+        part = np.argpartition(lr, S - M - 1, axis=1)
+        cut_idx = part[:, S - M - 1]
+        tail_idx = part[:, S - M:]
+        tail = np.take_along_axis(lr, tail_idx, axis=1)
+        order = np.argsort(tail, axis=1, kind="stable")
+        tail_idx = np.take_along_axis(tail_idx, order, axis=1)
+        tail = np.take_along_axis(tail, order, axis=1)                        # ascending
+        cutoff = np.exp(lr[np.arange(n), cut_idx])
+        k, sigma = _gpd_fit_rows(np.exp(tail) - cutoff[:, None])
+        khat = k
+        smooth = np.isfinite(k) & (sigma > 0)
+        if np.any(smooth):
+            p = (np.arange(M) + 0.5) / M
+            ks, ss = k[smooth, None], sigma[smooth, None]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                q = np.where(ks == 0, -ss * np.log1p(-p)[None, :],
+                             ss * np.expm1(-ks * np.log1p(-p)[None, :]) / np.where(ks == 0, 1.0, ks))
+                sm = np.log(cutoff[smooth, None] + q)
+            sm = np.minimum(sm, tail[smooth, -1:])          # truncate at the max raw weight
+            rows = np.flatnonzero(smooth)
+            lr[rows[:, None], tail_idx[smooth]] = sm
+    lr = lr - logsumexp(lr, axis=1, keepdims=True)
+    return lr, khat
+
+
 def psis_loo(ll: np.ndarray) -> dict:
     """PSIS-LOO (Vehtari, Gelman & Gabry 2017) from pointwise log-likelihoods (n_draws, n_obs)
-    of (nearly) independent posterior draws: elpd_loo, its standard error, p_loo, Pareto k."""
-    from arviz_stats.base import array_stats
+    of (nearly) independent posterior draws: elpd_loo, its standard error, p_loo, Pareto k.
 
+    Raw LOO weights are 1/p(y_i | theta_s) (log ratio -ll), smoothed for all observations
+    at once by :func:`psis_log_weights`; elpd_i = log sum_s w_is p(y_i | theta_s),
+    p_loo = sum_i (lpd_i - elpd_i), se = sqrt(n var(elpd_i)).
+    """
+    ll = np.asarray(ll, dtype=float)
+    llT = np.ascontiguousarray(ll.T)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        # arviz_stats negates its input: it takes the log-likelihood itself (weights ~ 1/p)
-        lw, k = array_stats.psislw(ll.T, r_eff=1.0, axis=-1)
-    lw = lw - logsumexp(lw, axis=1, keepdims=True)
-    elpd_i = logsumexp(lw + ll.T, axis=1)
-    lpd_i = logsumexp(ll.T, axis=1) - math.log(ll.shape[0])
+        lw, k = psis_log_weights(-llT)
+    elpd_i = logsumexp(lw + llT, axis=1)
+    lpd_i = logsumexp(llT, axis=1) - math.log(ll.shape[0])
     n = ll.shape[1]
     k = np.asarray(k, dtype=float)
+    kmax = float(np.nanmax(k)) if np.any(np.isfinite(k)) else float("nan")
     return {"elpd_loo": float(elpd_i.sum()), "se": float(math.sqrt(n * np.var(elpd_i))),
             "p_loo": float((lpd_i - elpd_i).sum()), "n_draws": int(ll.shape[0]),
-            "pareto_k_max": float(np.nanmax(k)), "n_pareto_k_gt_0.7": int(np.sum(k > 0.7)),
+            "pareto_k_max": kmax, "n_pareto_k_gt_0.7": int(np.sum(k > 0.7)),
             "elpd_i": elpd_i.tolist(), "pareto_k": np.round(k, 4).tolist()}
 
 
