@@ -305,12 +305,26 @@ class Thermal(Effect):
 class FirmwarePA(Effect):
     """The firmware's own pressure advance, applied to the command (a known input).
 
-    Klipper: pa_pos = pos + K * vel, smoothed by a triangular window of total width
-    smooth_time (kinematics/extruder.c; REFERENCE: default 0.040 s); Marlin LA:
-    pos + K * vel (smooth_time = 0). Both parameters are fixed by default; NaN means
-    "take them from the manifest's pattern parameters" (``firmware_pa_s``,
-    ``firmware_smooth_time_s``), so patterns printed with PA on are simulated right.
-    (Klipper applies PA to retractions too in this model; it does not in firmware.)
+    Klipper: pa_pos = pos + K * vel * f, smoothed by a triangular window of total width
+    smooth_time (klippy/chelper/kin_extruder.c; REFERENCE: default 0.040 s); Marlin LA:
+    pos + K * vel * f (smooth_time = 0). f is the per-move "can pressure advance" flag:
+    Klipper (klippy/kinematics/extruder.py, ``process_move``/``move``) sets it only when
+    ``axis_r > 0 and (move.axes_d[0] or move.axes_d[1])``, i.e. the move extrudes
+    (positive E) while the head moves in XY; Marlin LA 1.5 (planner.cpp) sets
+    ``use_advance_lead = esteps && K && de > 0`` on XY moves ("Extruder is running
+    forward"). So retract / prime (E-only) moves and wipe-while-retracting moves get no
+    advance; Klipper still smooths them when PA is on (the whole extruder position is
+    averaged), and sets smooth_time to 0 when K = 0.
+
+    Here f is 1 on timeline intervals with de > 0 and head speed > 1e-6 mm/s and 0
+    elsewhere; the advance term at a node uses the planner's velocity there when either
+    adjacent interval is a printing one (junctions of E-only moves with XY moves have
+    zero extruder velocity in Klipper, so the choice only places a print-to-travel
+    release of K * v within one interval).
+
+    Both parameters are fixed by default; NaN means "take them from the manifest's
+    pattern parameters" (``firmware_pa_s``, ``firmware_smooth_time_s``), so patterns
+    printed with PA on are simulated right.
     """
 
     name = "firmware_pa"
@@ -325,14 +339,42 @@ class FirmwarePA(Effect):
         if not np.any(k):
             return ve
         e = ctx.e_mm
+        v_pa = _pa_velocity(ctx)
         out = np.empty_like(ve)
         for st_val in np.unique(st):
             rows = (st == st_val)[:, 0]
             se = _smoothed(ctx, "e", e, float(st_val))
-            sv = _smoothed(ctx, "v", ctx.ve_node_mm_s, float(st_val))
-            base = ve[rows] - np.diff(e) / ctx.dt_s + np.diff(se) / ctx.dt_s
-            out[rows] = base + k[rows] * (np.diff(sv) / ctx.dt_s)
+            sv = _smoothed(ctx, "v_pa", v_pa, float(st_val))
+            # firmware extruder position at the nodes; the first and last node keep the raw
+            # position so the motion the window spreads beyond the timeline's ends is
+            # lumped into the first/last interval (commanded volume conserved)
+            pos = se[None, :] + k[rows] * sv[None, :]
+            pos[:, 0] = e[0] + k[rows, 0] * v_pa[0]
+            pos[:, -1] = e[-1] + k[rows, 0] * v_pa[-1]
+            out[rows] = ve[rows] - np.diff(e) / ctx.dt_s + np.diff(pos, axis=1) / ctx.dt_s
         return out
+
+
+def pa_intervals(ctx) -> np.ndarray:
+    """Timeline intervals where firmware applies pressure advance (bool, n_int): the
+    extruder moves forward while the head moves in XY (Klipper ``can_pressure_advance``,
+    Marlin ``use_advance_lead``; see :class:`FirmwarePA`)."""
+    return (np.asarray(ctx.de_mm) > 0.0) & (np.asarray(ctx.v_head_mm_s) > 1e-6)
+
+
+def _pa_velocity(ctx) -> np.ndarray:
+    """Extruder velocity at the nodes that firmware PA multiplies by K: the planner's node
+    velocity where an adjacent interval is a printing move, 0 inside E-only / travel runs."""
+    ck = ("fw_pa_velocity",)
+    if ck in ctx.cache:
+        return ctx.cache[ck]
+    f = pa_intervals(ctx)
+    node = np.zeros(len(f) + 1, dtype=bool)
+    node[:-1] |= f
+    node[1:] |= f
+    res = np.where(node, np.asarray(ctx.ve_node_mm_s, float), 0.0)
+    ctx.cache[ck] = res
+    return res
 
 
 def _nan_to(arr, value):
