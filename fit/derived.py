@@ -76,6 +76,48 @@ def kalico_match(advance_mm, v_max_mm_s: float, kind: str = "tanh", n: int = 64)
             "linearization_velocity_mm_s": float(res.x[2]), "rms_mm": rms}
 
 
+def kalico_config(kind: str, la_s: float, off_mm: float, v_lin_mm_s: float) -> str:
+    """Kalico ``[extruder]`` lines for its nonlinear PA (Kalico docs, "Nonlinear pressure
+    advance": ``pressure_advance_model``, ``linear_advance``, ``nonlinear_offset``,
+    ``linearization_velocity``)."""
+    return (f"[extruder]\npressure_advance_model: {kind}\nlinear_advance: {la_s:.4f}\n"
+            f"nonlinear_offset: {off_mm:.4f}\nlinearization_velocity: {v_lin_mm_s:.4f}")
+
+
+def problem_advance(problem, k: int = 0):
+    """For a :class:`fit.likelihood.JointProblem` whose model has a nonlinear advance
+    term: (advance_fn(theta_row, v) -> Preq mm, v_max_mm_s, width_mm) for
+    :func:`derived_values`, else None. v_max is the 99.9 % time-weighted quantile of the
+    commanded filament speed on the tracks of all scans (the fitted flow range); the
+    bead width for a backpressure term is the median nominal width of the stations."""
+    model = problem.models[k]
+    if not getattr(model, "has_nonlinear_advance", False):
+        return None
+    vs, ws, ws_w = [], [], []
+    for sc in problem.scans:
+        c = sc.ctx
+        m = np.asarray(c.on_track) & (np.asarray(c.dt_s) > 1e-6)
+        vs.append(np.asarray(c.ve_mm_s)[m])
+        ws_w.append(np.asarray(c.dt_s)[m])
+        ws.append(np.asarray(c.s_width_nominal_mm, float))
+    v, wt = np.concatenate(vs), np.concatenate(ws_w)
+    if v.size == 0:
+        return None
+    o = np.argsort(v)
+    cw = np.cumsum(wt[o]) / wt.sum()
+    v_max = float(v[o][min(np.searchsorted(cw, 0.999), len(v) - 1)])
+    w_all = np.concatenate(ws)
+    width = float(np.nanmedian(w_all)) if np.any(np.isfinite(w_all)) else 1.125 * float(
+        problem.scans[0].ctx.nozzle_diameter_mm)
+    if not v_max > 0:
+        return None
+
+    def advance_fn(row, vn):
+        return model.steady_advance_mm(problem.model_theta(row, k)[0], vn, width_mm=width)
+
+    return advance_fn, v_max, width
+
+
 def derived_values(param_names, samples, profile: dict, advance_fn=None,
                    v_max_mm_s: float | None = None, n_kalico: int = 100) -> dict:
     """Derived values with intervals from posterior draws (samples (n, k)).
@@ -103,7 +145,12 @@ def derived_values(param_names, samples, profile: dict, advance_fn=None,
         rows = S[rng.choice(len(S), min(n_kalico, len(S)), replace=False)]
         for kind in ("tanh", "recipr"):
             fits = [kalico_match(lambda v, r=r: advance_fn(r, v), v_max_mm_s, kind) for r in rows]
-            out[f"kalico_{kind}"] = {k: summarize([f[k] for f in fits])
-                                     for k in ("pressure_advance_s", "offset_mm",
-                                               "linearization_velocity_mm_s", "rms_mm")}
+            d = {k: summarize([f[k] for f in fits])
+                 for k in ("pressure_advance_s", "offset_mm", "linearization_velocity_mm_s",
+                           "rms_mm")}
+            d["v_max_mm_s"] = float(v_max_mm_s)
+            d["config"] = kalico_config(kind, d["pressure_advance_s"]["median"],
+                                        d["offset_mm"]["median"],
+                                        d["linearization_velocity_mm_s"]["median"])
+            out[f"kalico_{kind}"] = d
     return out

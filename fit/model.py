@@ -23,6 +23,7 @@ from calib.errors import UserError
 from fit import kernels as K
 from fit.context import SimContext, profile_dict
 from fit.effects import REGISTRY, Effect
+from fit.geometry import bead_width_mm, filament_area_mm2
 from fit.params import Param
 
 # Kernel defaults when an effect is absent: linear (n=1), no other term.
@@ -256,6 +257,68 @@ class Model:
                                coef, c.filament_area_mm2, p0, c.perm, c.lo_pos, c.lo_frac, c.hi_pos,
                                c.hi_frac, c.win_mm, area)
         return self._widths(c, area, pds, n)[0]
+
+    #: nozzle terms whose steady advance is not linear in vn (Kalico match makes sense)
+    NONLINEAR_TERMS = ("nonlinear", "bernoulli", "kalico_tanh", "kalico_recip")
+
+    @property
+    def has_nonlinear_advance(self) -> bool:
+        return any(e.name in self.NONLINEAR_TERMS for e in self._nozzle)
+
+    def steady_advance_mm(self, theta, vn_mm_s, width_mm=None, height_mm=None,
+                          head_speed_mm_s=None) -> np.ndarray:
+        """Steady-state advance Preq(vn) (mm of filament) at nozzle outflow vn (mm/s of
+        filament), summed over the model's nozzle terms (same equations as the kernel,
+        fit/kernels.py ``_preq``):
+
+            Preq = tau v_ref (vn/v_ref)^n          pa / pa_ve (n = 1 without ``nonlinear``)
+                 + k_b Af vn^2                     bernoulli (seed 002)
+                 + Kb w_sat tanh(w / w_sat)        backpressure (seed 001)
+                 + Kc                              offset (seed 001)
+                 + off_t tanh(vn / vl_t)           kalico_tanh
+                 + off_r vn / (vn + vl_r)          kalico_recip
+        (thermal adds nothing at steady state: X = vn). At vn = 0 the value is the limit
+        vn -> 0+ (the flow threshold). Backpressure needs the bead width w: ``width_mm``
+        (scalar or broadcastable to vn; at steady state the commanded width), or the width
+        the flow lays, w = bead_width_mm(Af vn / head_speed_mm_s, height_mm), as the kernel
+        does. theta (k,) -> shape of vn; theta (n_sets, k) -> (n_sets,) + vn.shape.
+        """
+        th = self._theta2d(theta)
+        n = th.shape[0]
+        v = np.clip(np.asarray(vn_mm_s, dtype=float), 0.0, None)
+        coef = np.tile(_COEF_DEFAULT, (n, 1))
+        for e, p in zip(self.effects, self._pdicts(th)):
+            if e.nozzle_term:
+                e.nozzle(p, coef)
+        c = coef.reshape((n, K.N_COEF) + (1,) * v.ndim)
+        col = lambda j: c[:, j]          # noqa: E731  (n_sets, 1, ...) broadcast with v
+        af = filament_area_mm2(self._profile().get("filament_diameter_mm", 1.75))
+        tau = np.maximum(col(K.C_TAU), 1e-6)
+        nexp, vref = col(K.C_N), col(K.C_VREF)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p_pa = np.where(nexp == 1.0, tau * v, tau * vref * (v / vref) ** nexp)
+        out = p_pa + col(K.C_KC) + col(K.C_KBERN) * af * v * v
+        out = out + col(K.C_TOFF) * np.tanh(v / col(K.C_TVL))
+        out = out + col(K.C_ROFF) * v / (v + col(K.C_RVL))
+        kb = col(K.C_KB)
+        if np.any(kb != 0):
+            if width_mm is not None:
+                w = np.asarray(width_mm, dtype=float)
+            elif height_mm is not None and head_speed_mm_s is not None:
+                w = bead_width_mm(af * v / np.asarray(head_speed_mm_s, float), height_mm)
+            else:
+                raise ValueError("steady_advance_mm: the backpressure term needs width_mm "
+                                 "(or height_mm and head_speed_mm_s)")
+            ws = col(K.C_WSAT)
+            out = out + kb * ws * np.tanh(w / ws)
+        out = np.broadcast_to(out, (n,) + v.shape)
+        return np.array(out[0] if np.ndim(theta) == 1 else out)
+
+    def _profile(self) -> dict:
+        for e in self.effects:
+            if e.profile:
+                return e.profile
+        return {}
 
     def flow(self, ctx: SimContext, theta) -> np.ndarray:
         """Volumetric nozzle flow q (n_sets, n_t) mm^3/s at the timeline nodes."""

@@ -84,7 +84,12 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
                    progress=progress)
     res.model = model_spec
     res.map.model = model_spec
-    res.derived = derived_values(res.param_names, res.samples, res.profile)
+    from fit.derived import problem_advance
+
+    adv = problem_advance(problem)      # Kalico match for models with a nonlinear term
+    res.derived = derived_values(res.param_names, res.samples, res.profile,
+                                 advance_fn=adv[0] if adv else None,
+                                 v_max_mm_s=adv[1] if adv else None)
     return res, problem
 
 
@@ -147,4 +152,16 @@ def summary_text(res) -> str:
     ve = res.derived.get("kisslicer_ve_us")
     if ve:
         lines.append(f"KISSlicer VE {ve['median']:.3f} us (95 % {ve['ci95'][0]:.3f}-{ve['ci95'][1]:.3f})")
+    for kind in ("tanh", "recipr"):
+        kd = res.derived.get(f"kalico_{kind}")
+        if not kd:
+            continue
+        parts = []
+        for key, label, unit in (("pressure_advance_s", "linear_advance", "s"),
+                                 ("offset_mm", "nonlinear_offset", "mm"),
+                                 ("linearization_velocity_mm_s", "linearization_velocity", "mm/s")):
+            q = kd[key]
+            parts.append(f"{label} {q['median']:.4g} {unit} (95 % {q['ci95'][0]:.4g}-{q['ci95'][1]:.4g})")
+        lines.append(f"Kalico {kind} (0-{kd['v_max_mm_s']:.2f} mm/s filament, rms "
+                     f"{kd['rms_mm']['median'] * 1000:.1f} um): " + ", ".join(parts))
     return "\n".join(lines)
