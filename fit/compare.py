@@ -173,6 +173,13 @@ def warm_starts(problem: JointProblem, fits: list[ModelFit]) -> tuple[list[np.nd
     return [np.clip(absent, lo, hi), np.clip(dflt, lo, hi)], new
 
 
+def _zpost(problem: JointProblem, r: MapResult) -> float:
+    """The log posterior fit_map maximises: in z = log(theta) for positive parameters, so
+    it adds the log-Jacobian sum log(theta_j) of those (optima are compared on it)."""
+    pos = np.array([p.positive for p in problem.priors])
+    return float(r.log_post + np.sum(np.log(r.theta[pos])))
+
+
 def fit_model(model, scan: ScanData, spec: str = "", warm: list[ModelFit] = (), n_random: int = 24,
               n_polish: int = 3, seed: int = 0, noise: NoiseOptions | None = None,
               problem: JointProblem | None = None) -> ModelFit:
@@ -211,7 +218,7 @@ def fit_model(model, scan: ScanData, spec: str = "", warm: list[ModelFit] = (), 
         warnings.simplefilter("ignore")
         for i in order[:max(1, n_polish)]:
             r = fit_map(problem, x0=cand[i], n_starts=1, seed=seed)
-            if best is None or r.log_post > best.log_post:
+            if best is None or _zpost(problem, r) > _zpost(problem, best):
                 best = r
         # Restart from the best optimum with the noise parameters reset to their defaults:
         # the posterior has a second basin where a large sigma_extra with a long AR(1)
@@ -223,7 +230,7 @@ def fit_model(model, scan: ScanData, spec: str = "", warm: list[ModelFit] = (), 
         if not np.allclose(reset, best.theta):
             r = fit_map(problem, x0=reset, n_starts=1, seed=seed)
             n_ok += 1
-            if r.log_post > best.log_post:
+            if _zpost(problem, r) > _zpost(problem, best):
                 best = r
     best.model = spec
     best.n_starts = n_ok
