@@ -65,11 +65,19 @@ def _truth_error(widths_csv: Path, truth_json: Path) -> dict:
 
 
 def _fit_summary(fit_json: Path) -> dict:
+    """The numbers the demo prints, from a full fit.json or a ``--map-only`` one."""
     doc = json.loads(fit_json.read_text())
+    if "information" not in doc:  # MAP only: Laplace sd around the MAP
+        names = [n for n in doc.get("param_names", [])] or list(doc["theta"])
+        theta, sd = doc["theta"], doc.get("sd", {})
+        params = {n: {"median": theta[n], "ci68": [theta[n] - sd.get(n, np.nan), theta[n] + sd.get(n, np.nan)]}
+                  for n in names}
+        return {"model": doc["model"], "params": params, "converged": None, "rms_mm": doc["rms_mm"],
+                "chi2_nu": doc["chi2_nu"], "bic": doc["bic"], "elpd_loo": None, "map_only": True}
     info = doc.get("information", {})
     return {"model": doc["model"], "params": doc["params"], "converged": doc.get("converged"),
             "rms_mm": info.get("rms_mm"), "chi2_nu": info.get("chi2_nu"), "bic": info.get("bic"),
-            "elpd_loo": (info.get("loo") or {}).get("elpd_loo")}
+            "elpd_loo": (info.get("loo") or {}).get("elpd_loo"), "map_only": False}
 
 
 def _print_params(r: _Runner, fit: dict, truth_values: dict) -> None:
@@ -118,43 +126,58 @@ def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, ca
 
     history = []
     model = base_model
-    for rnd in range(rounds + 1):
+    step_no = 5
+
+    def fit(model: str, full: bool) -> dict:
+        nonlocal step_no
         tag = model.replace("+", "_")
         fit_json = out / f"fit_{tag}.json"
-        r.step(f"{5 + 2 * rnd}. fit '{model}' (MAP, then emcee until the chains converge)", [
-            "fit", widths, "--manifest", man, "--model", model, "--seed", seed, "-o", fit_json,
-            "--plots", out / f"plots_{tag}"], ok_codes=(0, 3))
-        fs = _fit_summary(fit_json)
-        history.append(fs)
+        how = "MAP, then emcee until the chains converge" if full else "MAP with Laplace errors"
+        argv = ["fit", widths, "--manifest", man, "--model", model, "--seed", seed, "-o", fit_json]
+        argv += ["--plots", out / f"plots_{tag}"] if full else ["--map-only"]
+        r.step(f"{step_no}. fit '{model}' ({how})", argv, ok_codes=(0, 3))
+        step_no += 1
+        fs = _fit_summary(fit_json) | {"file": fit_json}
         _print_params(r, fs, values_true)
         r.say(f"   residual RMS {fs['rms_mm'] * 1000:.1f} um, reduced chi-square {fs['chi2_nu']:.2f}"
-              + ("" if fs["converged"] else "   (chains NOT converged: see fit json)"))
-        if rnd == rounds:
-            break
+              + ("   (chains NOT converged: see the fit json)" if fs["converged"] is False else ""))
+        history.append(fs)
+        return fs
+
+    fit(model, full=True)
+    for _ in range(rounds):
+        tag = model.replace("+", "_")
         diag_json = out / f"diagnose_{tag}.json"
-        r.step(f"{6 + 2 * rnd}. diagnose '{model}': which effect is missing?", [
+        r.step(f"{step_no}. diagnose '{model}': which effect is missing?", [
             "diagnose", widths, "--manifest", man, "--model", model, "--seed", seed,
             "-o", diag_json, "--plots", out / f"covariates_{tag}"])
+        step_no += 1
         diag = json.loads(diag_json.read_text())
         cands = [c for c in diag.get("candidates", []) if np.isfinite(c.get("delta_bic", np.nan))]
         if not cands or cands[0]["delta_bic"] < 10:
             r.say("   no candidate effect improves BIC by 10 or more: the model explains the data.")
             break
         model = f"{model}+{cands[0]['effect']}"
+        fit(model, full=False)
+    if model != base_model:
+        fit(model, full=True)  # the final model gets the full posterior
 
     r.say("\n== the error falling")
     r.say(f"   {'model':36s} {'RMS (um)':>9s} {'chi2_nu':>8s} {'BIC':>12s}")
+    full_models = {h["model"] for h in history if not h["map_only"]}
     for h in history:
+        if h["map_only"] and h["model"] in full_models:
+            continue  # the same model's full fit is listed instead
         r.say(f"   {h['model']:36s} {h['rms_mm'] * 1000:9.1f} {h['chi2_nu']:8.2f} {h['bic']:12.1f}")
     r.say(f"   (truth: {spec_true})")
 
-    last = out / f"fit_{history[-1]['model'].replace('+', '_')}.json"
+    last = history[-1]["file"]
     r.step("export the pressure advance for Klipper", ["export", last, "--to", "klipper"])
     r.step("the report", ["report", "--widths", widths, "--manifest", man, "--scan", scan,
                           "--overlay", qa, "--fit", last, "--models", base_model, history[-1]["model"],
                           "-o", out / "report.html"])
     summary = {"truth": {"spec": spec_true, "values": values_true}, "measure_error": err,
-               "fits": [{k: v for k, v in h.items() if k != "params"} |
+               "fits": [{k: v for k, v in h.items() if k not in ("params", "file")} |
                         {"medians": {n: p["median"] for n, p in h["params"].items()}} for h in history],
                "seconds": time.perf_counter() - r.t0}
     atomic_write_text(out / "demo.json", json.dumps(summary, indent=1))
