@@ -18,20 +18,11 @@ from calib.errors import UserError
 from fit.data import ScanData
 from fit.derived import derived_values, firmware_commands, kalico_match, ve_s_from_tau
 from fit.likelihood import JointProblem, NoiseOptions, ar1_phi, pointwise_loglik
+from fit.params import Param
 from fit.priors import Prior, apply_overrides, load_priors_file, prior_from_param
 from fit.sampler import fit_map, fit_mcmc
 from measure.table import WidthTable
 from patterns.manifest import Samples
-
-
-@dataclass(frozen=True)
-class ToyParam:
-    name: str
-    unit: str
-    default: float
-    lower: float
-    upper: float
-    prior: object = "uniform"
 
 
 @dataclass
@@ -45,9 +36,9 @@ class ToyModel:
     spec = "toy"
 
     def __init__(self, with_gain=True):
-        self.params = [ToyParam("pa.tau_s", "s", 0.2, 0.01, 3.0, "loguniform")]
+        self.params = [Param("pa.tau_s", "s", 0.2, 0.01, 3.0, "loguniform")]
         if with_gain:
-            self.params.append(ToyParam("flow_gain.gain", "1", 1.0, 0.8, 1.2))
+            self.params.append(Param("flow_gain.gain", "1", 1.0, 0.8, 1.2))
         self.param_names = [p.name for p in self.params]
 
     def default_theta(self):
@@ -137,7 +128,7 @@ def test_loguniform_prior_density_normalised_and_truncated():
 
 
 def test_prior_from_param_tuple_and_overrides_file(tmp_path):
-    pr = prior_from_param(ToyParam("a", "s", 0.5, 0.0, 1.0, ("normal", 0.4, 0.1)))
+    pr = prior_from_param(Param("a", "s", 0.5, 0.0, 1.0, ("normal", 0.4, 0.1)))
     assert (pr.kind, pr.mu, pr.sd) == ("normal", 0.4, 0.1)
     f = tmp_path / "p.toml"
     f.write_text('["pa.tau_s"]\nprior = "normal"\nmu = 0.3\nsd = 0.01\n')
