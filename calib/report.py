@@ -179,7 +179,7 @@ def build_report(title: str, obs=None, comparison=None, diagnosis=None, compare_
                       for f in full[:3]]
             parts.append("</div>")
     if fit_doc is not None:
-        parts.append("<h2>Fit</h2><pre>" + html.escape(_short_json(fit_doc)) + "</pre>")
+        parts.append(_fit_section(fit_doc))
     parts.append("</body></html>")
     return "\n".join(parts)
 
@@ -219,10 +219,28 @@ def _cov_table(covs) -> str:
     return "".join(out) + "</table>"
 
 
-def _short_json(doc) -> str:
-    import json
-    keep = {k: v for k, v in doc.items() if not isinstance(v, list) or len(v) < 50}
-    return json.dumps(keep, indent=1)[:6000]
+def _fit_section(doc) -> str:
+    """Parameters with intervals and sampler health, then the lines to paste into firmware."""
+    d = doc.get("diagnostics", {})
+    ok = "converged" if doc.get("converged") else "NOT converged: " + str(d.get("warning", d.get("stop_reason", "")))
+    out = [f"<h2>Fit: {html.escape(str(doc.get('model', '')))}</h2>",
+           f"<p>{html.escape(ok)}; {d.get('n_steps', '-')} steps x {d.get('n_walkers', '-')} walkers x "
+           f"{d.get('n_ensembles', '-')} ensembles, acceptance {_fmt(d.get('acceptance_fraction'), '{:.2f}')}</p>",
+           "<table><tr><th>parameter</th><th>median</th><th>68 % interval</th><th>95 % interval</th>"
+           "<th>R-hat</th><th>ESS</th></tr>"]
+    for name, p in doc.get("params", {}).items():
+        lo68, hi68 = p.get("ci68", [None, None])
+        lo95, hi95 = p.get("ci95", [None, None])
+        out.append(f"<tr><td>{html.escape(name)}</td><td>{_fmt(p.get('median'), '{:.5g}')}</td>"
+                   f"<td>{_fmt(lo68, '{:.5g}')} - {_fmt(hi68, '{:.5g}')}</td>"
+                   f"<td>{_fmt(lo95, '{:.5g}')} - {_fmt(hi95, '{:.5g}')}</td>"
+                   f"<td>{_fmt(p.get('rhat'), '{:.4f}')}</td><td>{_fmt(p.get('ess'), '{:.0f}')}</td></tr>")
+    out.append("</table>")
+    fw = doc.get("derived", {}).get("firmware", {})
+    if fw:
+        out.append("<p>Firmware:</p><pre>" + html.escape("\n".join(
+            f"{k:15s} {v}" for k, v in fw.items() if "\n" not in v)) + "</pre>")
+    return "\n".join(out)
 
 
 def write_report(path, text: str) -> Path:
