@@ -1,13 +1,16 @@
 """Physics speed and accuracy: one model evaluation on a 20,000-sample timeline.
 
 Targets (issue 3): linear `pa` <= 5 ms; the full nonlinear composition <= 50 ms;
-64 parameter sets at once under 64x one set (parallel kernels over sets from 4 sets). Accuracy: the full
+64 parameter sets at once well under 64x one set: the kernels run parallel over sets
+(from 4 sets), so the target is 64 / cores x 1.25 (40x on 2 cores). Accuracy: the full
 composition at dt = 5 ms against the same model at dt = 0.5 ms (self-convergence).
 On the demo spiral (spiral-step, adventurer3, 54k timeline samples): predict per set for
 pa, pa+thermal (exact two-state kernel), pa+thermal+backpressure, at 1 and 28 sets, and
 the coarsened physics timeline against the full one (max width difference).
 """
 from __future__ import annotations
+
+import os
 
 import numpy as np
 
@@ -64,15 +67,17 @@ def run() -> list[Row]:
     t_full = best_time_s(lambda: full.predict(ctx, th_full), repeat=5)
     rows.append(Row("physics", "full composition predict, 20k samples, 1 set", t_full * 1e3, "ms",
                     "<= 50", t_full <= 50e-3))
+    cores = len(os.sched_getaffinity(0))
+    ratio_max = 64 / cores * 1.25
     th64 = np.tile(th_full, (64, 1))
     th64[:, 0] = np.geomspace(0.02, 2.0, 64)
     t64 = best_time_s(lambda: full.predict(ctx, th64), repeat=3)
     rows.append(Row("physics", "full composition, 64 sets / 1 set (time ratio)", t64 / t_full, "x",
-                    "< 64", t64 / t_full < 64))
+                    f"<= {ratio_max:.0f} ({cores} cores)", t64 / t_full <= ratio_max))
     pa64 = np.geomspace(0.02, 2.0, 64)[:, None]
     t64pa = best_time_s(lambda: pa.predict(ctx, pa64), repeat=3)
-    rows.append(Row("physics", "pa, 64 sets / 1 set (time ratio)", t64pa / t_pa, "x", "< 64",
-                    t64pa / t_pa < 64))
+    rows.append(Row("physics", "pa, 64 sets / 1 set (time ratio)", t64pa / t_pa, "x",
+                    f"<= {ratio_max:.0f} ({cores} cores)", t64pa / t_pa <= ratio_max))
 
     rows += _demo_spiral_rows()
 

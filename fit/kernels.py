@@ -45,6 +45,7 @@ sum(out) = sum(de) - (P_end - P_0) + thermal source, exactly (volume conservatio
 from __future__ import annotations
 
 import math
+import types
 
 import numpy as np
 from numba import njit, prange
@@ -500,8 +501,22 @@ def bead_width_kernel(area, h, h_per_set, printed, out):
 # parallel over parameter sets (prange; emcee ensembles, 64+ sets).
 _PY = {"nozzle": nozzle_kernel, "predict": predict_kernel, "deposit": deposit_kernel,
        "bead_width": bead_width_kernel}
-SERIAL = {k: njit(cache=True)(f) for k, f in _PY.items()}
-PARALLEL = {k: njit(cache=True, parallel=True)(f) for k, f in _PY.items()}
+
+
+def _renamed(f, suffix: str):
+    """A copy of f with its own __qualname__. numba names its on-disk cache by the
+    function's qualified name and line, not by the compile flags: compiling the same
+    function serial and parallel=True with cache=True made the two share one cache entry,
+    so whichever compiled first was loaded for both (the parallel kernels ran serial)."""
+    g = types.FunctionType(f.__code__, f.__globals__, f.__name__ + suffix, f.__defaults__,
+                           f.__closure__)
+    g.__qualname__ = f.__qualname__ + suffix
+    g.__doc__ = f.__doc__
+    return g
+
+
+SERIAL = {k: njit(cache=True)(_renamed(f, "_serial")) for k, f in _PY.items()}
+PARALLEL = {k: njit(cache=True, parallel=True)(_renamed(f, "_parallel")) for k, f in _PY.items()}
 #: Parameter sets from which the parallel kernels pay off.
 PARALLEL_MIN_SETS = 4
 

@@ -148,3 +148,17 @@ def test_batched_parallel_predict_equals_set_by_set(planned_manifest):
         w_sim = model.simulate(ctx_full, th[:2]).widths_mm
         w_pred = model.predict(ctx_full, th[:2])
         assert np.max(np.abs(w_sim[ok[:2]] - w_pred[ok[:2]])) < 1e-12
+
+
+def test_serial_and_parallel_kernels_have_separate_compile_caches():
+    """numba keys its on-disk cache by qualified name and line, not by parallel=True: the
+    serial and parallel builds of one kernel must not share a cache entry, or whichever
+    compiled first is loaded for both (the parallel kernels then ran on one core)."""
+    from fit import kernels as K
+
+    for name in K.SERIAL:
+        ser, par = K.SERIAL[name], K.PARALLEL[name]
+        assert ser.py_func.__code__ is par.py_func.__code__
+        assert ser._cache._cache_file._index_name != par._cache._cache_file._index_name
+        assert par.targetoptions.get("parallel") is True
+        assert not ser.targetoptions.get("parallel")
