@@ -41,6 +41,8 @@ COARSE_DT_S = 0.05
 COARSE_RTOL = 1e-3
 COARSE_GUARD_S = 0.05
 COARSE_GUARD_RTOL = 0.05
+#: Timeline kept after the last deposit any station sees (:func:`last_needed_node`), s.
+TRUNCATE_MARGIN_S = 1.0
 
 PROFILE_KEYS = ("filament_diameter_mm", "nozzle_diameter_mm", "nozzle_land_length_mm",
                 "bowden_length_mm")
@@ -101,8 +103,9 @@ class SimContext:
     firmware_pa_s: float = 0.0
     firmware_smooth_time_s: float = 0.0
     cache: dict = field(default_factory=dict, repr=False)
-    #: The same print on the coarsened physics timeline (:func:`coarsen_nodes`), used by
-    #: ``Model.predict`` (widths only); None if coarsening saves nothing. The arrays above
+    #: The same print on the coarsened physics timeline (:func:`coarsen_nodes`), cut
+    #: after the last node any station's width depends on (:func:`last_needed_node`),
+    #: used by ``Model.predict`` (widths only); None if that saves less than 10 %. The arrays above
     #: keep the planner's full timeline (``simulate``/``flow`` report on it).
     physics: "SimContext | None" = field(default=None, repr=False)
     #: On a coarsened context: index of each node in the full timeline.
@@ -208,11 +211,31 @@ class SimContext:
         )
         if coarsen:
             keep = coarsen_nodes(ctx, trk)
+            keep = keep[:np.searchsorted(keep, last_needed_node(ctx)) + 1]
             if len(keep) < 0.9 * len(t):
                 sub = replace(manifest, timeline=tl.slice(keep))
                 ctx.physics = cls.build(sub, samples, profile, coarsen=False)
                 ctx.physics.node_index = keep
         return ctx
+
+
+def last_needed_node(ctx: "SimContext", margin_s: float = TRUNCATE_MARGIN_S) -> int:
+    """Index of the last timeline node the predicted widths can depend on.
+
+    The width at a station is the volume deposited inside its window, and the nozzle
+    state is causal, so nothing printed after the last interval that deposits into any
+    station's window (``perm[hi_pos]``) changes a predicted width: a pattern that prints
+    its test tracks first and its fiducials, ruler and labels afterwards needs only the
+    first part of its timeline (the spiral-step pattern: ~1/6). ``margin_s`` more of
+    timeline is kept for command transforms that look ahead (firmware PA smoothing is a
+    centred window of smooth_time ~0.04 s). The last node if no station is printed.
+    """
+    n_last = len(ctx.t_s) - 1
+    if not np.any(ctx.printed):
+        return n_last
+    k = int(np.max(ctx.perm[ctx.hi_pos[ctx.printed]])) + 1
+    k = int(np.searchsorted(ctx.t_s, ctx.t_s[k] + margin_s, side="right"))
+    return min(k, n_last)
 
 
 @njit(cache=True)

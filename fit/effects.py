@@ -153,12 +153,15 @@ class PAVE(Effect):
 class Nonlinear(Effect):
     """Power-law (shear-thinning) nozzle: the pa term becomes
 
-        Preq_pa = tau * v_ref * (vn / v_ref)^n       (q ~ P^(1/n))
+        Preq_pa = (tau / n) * v_ref * (vn / v_ref)^n       (q ~ P^(1/n))
 
     n = 1 is linear pa (effect absent); melts have n ~0.3-0.5 (REFERENCE "Shear
     thinning"), so steady advance grows like v^n and the local time constant
-    dPreq/dvn = tau * n * (vn/v_ref)^(n-1) falls with flow. v_ref = 1 mm/s of filament
-    (fixed) makes tau the time constant at that flow.
+    dPreq/dvn = tau * (vn/v_ref)^(n-1) falls with flow. tau is the time constant at
+    v_ref = 1 mm/s of filament (fixed; ~2.4 mm^3/s of 1.75 mm filament, a typical
+    printing flow), so pa.tau_s keeps its meaning (the linear pressure advance at that
+    flow) whatever n is. Written as tau * v_ref * (vn/v_ref)^n instead, tau and n
+    trade off along a curved ridge (the data fix tau * n), which samples ~10x slower.
 
     Firmware nonlinear PA maps onto steady-state Preq terms: Kalico's
     advance = LA*v + off*tanh(v/v_lin) is exactly Preq(vn) = LA*vn + off*tanh(vn/v_lin)

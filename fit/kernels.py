@@ -8,7 +8,7 @@ X: thermal state (mm/s); vn: nozzle outflow (mm/s of filament).
     vn solves P = Preq(vn) if P > Preq(0+), else vn = 0   (no back-flow)
 
     Preq(vn) = Kc                                         offset (seed 001 Kc)
-             + tau * v_ref * (vn / v_ref)**n              pa; power law if n != 1
+             + (tau / n) * v_ref * (vn / v_ref)**n        pa; power law if n != 1
              + k_b * Af * vn**2                           Bernoulli (seed 002)
              + Kb * w_sat * tanh(w(vn) / w_sat)           bead back-pressure (seed 001)
              + off_t * tanh(vn / vl_t)                    Kalico "tanh" model
@@ -236,8 +236,8 @@ def _preq(vn, c, af, vhead, h, on):
     else:
         x = vn / vref
         xn = x ** n
-        p = tau * vref * xn
-        d = tau * n * xn / x if x > 0.0 else 1e30
+        p = tau / n * vref * xn
+        d = tau * xn / x if x > 0.0 else 1e30
     p += c[C_KC]
     if c[C_KBERN] != 0.0:
         p += c[C_KBERN] * af * vn * vn
@@ -280,99 +280,126 @@ def _general_row(ve, iv, dt, vhead, hgt, on, c, af, p0, out, vn_node, want_vn):
     returns (P_end, X_end).
     """
     n_int = dt.shape[0]
-    if True:
-        a = c[C_ATH]
-        tauth = max(c[C_TAUTH], 1e-9)
-        p = p0
-        vn0 = 0.0
-        xth = 0.0
-        if want_vn:
-            vn_node[0] = 0.0
-        for k in range(n_int):
-            h = dt[k]
-            v = ve[iv, k]
-            vh = vhead[k]
-            onk = on[k]
-            # Thermal source over the step, a*(X - vn)*dt, written as a*tau_th*(X0 - X1)
-            # with X updated exactly for the mean outflow: conserves volume exactly.
-            eth = math.exp(-h / tauth)
-            ah = a * tauth * (1.0 - eth)
-            hh = h + ah
-            # Local time constant at a representative outflow (vn0, or the command at a start).
-            vloc = vn0
-            if vloc < 1e-6:
-                vloc = max(0.5 * v, 1e-6)
-            ploc, dloc = _preq(vloc, c, af, vh, hgt[k], onk)
-            r = hh / max(dloc, 1e-12)
-            if r < 1e-4:
-                th = 0.5 + r / 12.0
-            elif r > 50.0:
-                th = 1.0 - 1.0 / r
+    a = c[C_ATH]
+    tauth = max(c[C_TAUTH], 1e-9)
+    p = p0
+    vn0 = 0.0
+    xth = 0.0
+    if want_vn:
+        vn_node[0] = 0.0
+    # Preq and dPreq/dvn at vn0 as the previous interval's Newton solve left them, valid
+    # while that interval had the same head speed, height and track state: most
+    # intervals then cost one or two Preq evaluations instead of four.
+    have = False
+    p_at = 0.0
+    d_at = 0.0
+    vh_prev = -1.0
+    h_prev = -1.0
+    on_prev = False
+    for k in range(n_int):
+        h = dt[k]
+        v = ve[iv, k]
+        vh = vhead[k]
+        hk = hgt[k]
+        onk = on[k]
+        # Thermal source over the step, a*(X - vn)*dt, written as a*tau_th*(X0 - X1)
+        # with X updated exactly for the mean outflow: conserves volume exactly.
+        eth = math.exp(-h / tauth) if a != 0.0 else 1.0
+        ah = a * tauth * (1.0 - eth)
+        hh = h + ah
+        # Local time constant at a representative outflow (vn0, or the command at a start).
+        vloc = vn0
+        if vloc < 1e-6:
+            vloc = max(0.5 * v, 1e-6)
+        if have and vloc == vn0 and vh == vh_prev and hk == h_prev and onk == on_prev:
+            ploc, dloc = p_at, d_at
+        else:
+            ploc, dloc = _preq(vloc, c, af, vh, hk, onk)
+        vh_prev = vh
+        h_prev = hk
+        on_prev = onk
+        r = hh / max(dloc, 1e-12)
+        if r < 1e-4:
+            th = 0.5 + r / 12.0
+        elif r > 50.0:
+            th = 1.0 - 1.0 / r
+        else:
+            th = 1.0 / (1.0 - math.exp(-r)) - 1.0 / r
+        b = p + h * v + ah * xth - hh * (1.0 - th) * vn0
+        cc = hh * th
+        p00 = _preq0(c, vh, onk)
+        if b <= p00:
+            vn1 = 0.0
+            p1 = b
+            have = False
+        else:
+            # g(x) = Preq(x) + cc*x - b is increasing with g(0+) < 0 <= g(b/cc).
+            # Newton from the linearised guess; a step leaving the bracket falls back to
+            # an Illinois false-position step (bisection stalls near vn = 0 for the
+            # concave power law, where Newton from the right overshoots below zero).
+            lo = 0.0
+            glo = p00 - b
+            hi = b / cc
+            ghi = -1.0          # g(hi) >= 0; evaluated only if a fallback step needs it
+            v0 = max(vn0, 1e-12)
+            if v0 == vloc:
+                pv, dv = ploc, dloc
             else:
-                th = 1.0 / (1.0 - math.exp(-r)) - 1.0 / r
-            b = p + h * v + ah * xth - hh * (1.0 - th) * vn0
-            cc = hh * th
-            if b <= _preq0(c, vh, onk):
-                vn1 = 0.0
-                p1 = b
-            else:
-                # g(x) = Preq(x) + cc*x - b is increasing with g(0+) < 0 <= g(b/cc).
-                # Newton from the linearised guess; a step leaving the bracket falls back to
-                # an Illinois false-position step (bisection stalls near vn = 0 for the
-                # concave power law, where Newton from the right overshoots below zero).
-                lo = 0.0
-                glo = _preq0(c, vh, onk) - b
-                hi = b / cc
-                ghi = -1.0          # g(hi) >= 0; evaluated only if a fallback step needs it
-                v0 = max(vn0, 1e-12)
-                if v0 == vloc:
-                    pv, dv = ploc, dloc
+                pv, dv = _preq(v0, c, af, vh, hk, onk)
+            x = (b - pv + dv * vn0) / (dv + cc)
+            if not (lo < x < hi):
+                x = min(max(vn0, 1e-12), 0.5 * hi)
+            side = 0
+            tol = 1e-13 * (1.0 + b)
+            xe = x               # last point where Preq was evaluated, and its values
+            pe = pv
+            de = dv
+            for _ in range(60):
+                pe, de = _preq(x, c, af, vh, hk, onk)
+                xe = x
+                g = pe + cc * x - b
+                if abs(g) <= tol:
+                    break
+                if g > 0.0:
+                    hi = x
+                    ghi = g
+                    if side == 1:
+                        glo *= 0.5
+                    side = 1
                 else:
-                    pv, dv = _preq(v0, c, af, vh, hgt[k], onk)
-                x = (b - pv + dv * vn0) / (dv + cc)
-                if not (lo < x < hi):
-                    x = min(max(vn0, 1e-12), 0.5 * hi)
-                side = 0
-                tol = 1e-13 * (1.0 + b)
-                for _ in range(60):
-                    g, dg = _preq(x, c, af, vh, hgt[k], onk)
-                    g += cc * x - b
-                    if abs(g) <= tol:
-                        break
-                    if g > 0.0:
-                        hi = x
-                        ghi = g
-                        if side == 1:
-                            glo *= 0.5
-                        side = 1
-                    else:
-                        lo = x
-                        glo = g
-                        if side == -1:
-                            if ghi < 0.0:
-                                ghi = _preq(hi, c, af, vh, hgt[k], onk)[0] + cc * hi - b
-                            ghi *= 0.5
-                        side = -1
-                    xn = x - g / (dg + cc)
-                    if not (lo < xn < hi):
+                    lo = x
+                    glo = g
+                    if side == -1:
                         if ghi < 0.0:
-                            ghi = _preq(hi, c, af, vh, hgt[k], onk)[0] + cc * hi - b
-                        xn = (lo * ghi - hi * glo) / (ghi - glo)
-                        if not (lo < xn < hi):
-                            xn = 0.5 * (lo + hi)
-                    if abs(xn - x) <= 1e-14 * (1.0 + x):
-                        x = xn
-                        break
+                            ghi = _preq(hi, c, af, vh, hk, onk)[0] + cc * hi - b
+                        ghi *= 0.5
+                    side = -1
+                xn = x - g / (de + cc)
+                newton = lo < xn < hi
+                if not newton:
+                    if ghi < 0.0:
+                        ghi = _preq(hi, c, af, vh, hk, onk)[0] + cc * hi - b
+                    xn = (lo * ghi - hi * glo) / (ghi - glo)
+                    if not (lo < xn < hi):
+                        xn = 0.5 * (lo + hi)
+                # A Newton step of relative size 1e-9 leaves an error ~1e-18 (quadratic
+                # convergence): stop without another evaluation.
+                if abs(xn - x) <= (1e-9 if newton else 1e-14) * (1.0 + x):
                     x = xn
-                vn1 = x
-                p1 = b - cc * vn1
-            vbar = (1.0 - th) * vn0 + th * vn1
-            out[k] = vbar * h
-            xth = vbar + (xth - vbar) * eth
-            p = p1
-            vn0 = vn1
-            if want_vn:
-                vn_node[k + 1] = vn1
+                    break
+                x = xn
+            vn1 = x
+            p1 = b - cc * vn1
+            have = True
+            p_at = pe + de * (x - xe)
+            d_at = de
+        vbar = (1.0 - th) * vn0 + th * vn1
+        out[k] = vbar * h
+        xth = vbar + (xth - vbar) * eth
+        p = p1
+        vn0 = vn1
+        if want_vn:
+            vn_node[k + 1] = vn1
     return p, xth
 
 
@@ -515,8 +542,15 @@ def _renamed(f, suffix: str):
     return g
 
 
-SERIAL = {k: njit(cache=True)(_renamed(f, "_serial")) for k, f in _PY.items()}
-PARALLEL = {k: njit(cache=True, parallel=True)(_renamed(f, "_parallel")) for k, f in _PY.items()}
+def serial_and_parallel(f):
+    """(serial, parallel=True) numba builds of the prange function f, cached apart."""
+    return (njit(cache=True)(_renamed(f, "_serial")),
+            njit(cache=True, parallel=True)(_renamed(f, "_parallel")))
+
+
+_BUILDS = {k: serial_and_parallel(f) for k, f in _PY.items()}
+SERIAL = {k: b[0] for k, b in _BUILDS.items()}
+PARALLEL = {k: b[1] for k, b in _BUILDS.items()}
 #: Parameter sets from which the parallel kernels pay off.
 PARALLEL_MIN_SETS = 4
 

@@ -34,9 +34,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy.special import gammaln
 
+from fit.kernels import serial_and_parallel
 from fit.priors import Prior, prior_from_param
 
 LOG2PI = math.log(2.0 * math.pi)
@@ -124,8 +125,7 @@ def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, ell, nu, c_t, out):
             out[i, j] = v if math.isfinite(v) else -math.inf
 
 
-_AR1_SERIAL = njit(cache=True)(_ar1_loglik_rows)
-_AR1_PARALLEL = njit(cache=True, parallel=True)(_ar1_loglik_rows)
+_AR1_SERIAL, _AR1_PARALLEL = serial_and_parallel(_ar1_loglik_rows)
 
 
 def ar1_phi(gap_mm: np.ndarray, corr_len_mm) -> np.ndarray:
@@ -278,13 +278,24 @@ class JointProblem:
             n = len(sc.order)
             part = out[:, col:col + n] if len(self.scans) > 1 else out
             buf = np.empty((n_sets, n)) if len(self.scans) > 1 else out
-            kern(pred, np.ascontiguousarray(sc.order, dtype=np.int64), np.ascontiguousarray(sc.y_mm, float),
-                 np.ascontiguousarray(sc.sd_mm, float) ** 2, np.ascontiguousarray(sc.gap_mm, float),
-                 sig, ell, nu_f, c_t, buf)
+            kern(pred, *self._kernel_arrays(k), sig, ell, nu_f, c_t, buf)
             if buf is not out:
                 part[:] = buf
             col += n
         return out
+
+    def _kernel_arrays(self, k: int) -> tuple:
+        """(order, y, sd^2, gap) of scan k as the AR(1) kernel takes them, built once: the
+        sampler calls :meth:`pointwise` thousands of times on the same data."""
+        sc = self.scans[k]
+        key = (id(sc.order), id(sc.y_mm), id(sc.sd_mm), id(sc.gap_mm))
+        cache = self.__dict__.setdefault("_arrays", {})
+        if cache.get(k, (None,))[0] != key:
+            cache[k] = (key, (np.ascontiguousarray(sc.order, dtype=np.int64),
+                              np.ascontiguousarray(sc.y_mm, dtype=float),
+                              np.ascontiguousarray(sc.sd_mm, dtype=float) ** 2,
+                              np.ascontiguousarray(sc.gap_mm, dtype=float)))
+        return cache[k][1]
 
     def residuals(self, theta) -> list[np.ndarray]:
         """Residuals y - m (mm) at the valid samples of each scan, for one theta."""

@@ -248,7 +248,8 @@ class Model:
         """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed.
 
         Integrates on the coarsened physics timeline ``ctx.physics`` when there is one
-        (fit/context.py :func:`coarsen_nodes`; same widths within ~1 um), with the fused
+        (fit/context.py :func:`coarsen_nodes`, same widths within ~1 um; cut after the last
+        deposit a station sees, :func:`last_needed_node`, exact), with the fused
         nozzle + deposit kernel (no per-interval arrays kept; parallel over sets)."""
         c = ctx.physics or ctx
         n, pds, ve, ve_per_set, coef, p0 = self._nozzle_inputs(c, theta)
@@ -271,7 +272,7 @@ class Model:
         filament), summed over the model's nozzle terms (same equations as the kernel,
         fit/kernels.py ``_preq``):
 
-            Preq = tau v_ref (vn/v_ref)^n          pa / pa_ve (n = 1 without ``nonlinear``)
+            Preq = (tau/n) v_ref (vn/v_ref)^n      pa / pa_ve (n = 1 without ``nonlinear``)
                  + k_b Af vn^2                     bernoulli (seed 002)
                  + Kb w_sat tanh(w / w_sat)        backpressure (seed 001)
                  + Kc                              offset (seed 001)
@@ -296,7 +297,7 @@ class Model:
         tau = np.maximum(col(K.C_TAU), 1e-6)
         nexp, vref = col(K.C_N), col(K.C_VREF)
         with np.errstate(divide="ignore", invalid="ignore"):
-            p_pa = np.where(nexp == 1.0, tau * v, tau * vref * (v / vref) ** nexp)
+            p_pa = np.where(nexp == 1.0, tau * v, tau / nexp * vref * (v / vref) ** nexp)
         out = p_pa + col(K.C_KC) + col(K.C_KBERN) * af * v * v
         out = out + col(K.C_TOFF) * np.tanh(v / col(K.C_TVL))
         out = out + col(K.C_ROFF) * v / (v + col(K.C_RVL))

@@ -250,8 +250,14 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
     tr = _Transform(problem)
     rng = np.random.default_rng(seed)
 
-    def logp(th):
-        return problem.log_prob(th)[0]
+    # The walkers move in z (log theta for positive parameters, as the MAP search): the
+    # posterior is then closer to Gaussian, and the products that the data pin down
+    # (tau*n of a power-law nozzle, Kb*w_sat of a saturated back-pressure) become linear
+    # combinations of the coordinates, which the affine-invariant DE moves sample
+    # efficiently; in theta they are curved ridges. The log-Jacobian keeps the target the
+    # same posterior.
+    def logp(z):
+        return _logpost_z(problem, tr, z)
 
     groups = [np.arange(e * nw, (e + 1) * nw) for e in range(n_ensembles)]
     sampler = emcee.EnsembleSampler(
@@ -259,7 +265,8 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
         moves=[(GroupedMove(emcee.moves.DEMove(), n_ensembles), 0.8),
                (GroupedMove(emcee.moves.DESnookerMove(), n_ensembles), 0.2)])
     sampler._random = np.random.mtrand.RandomState(int(rng.integers(2 ** 31)))
-    p0 = np.concatenate([_initial_ball(problem, tr, map_result, nw, rng) for _ in range(n_ensembles)])
+    p0 = tr.to_z(np.concatenate([_initial_ball(problem, tr, map_result, nw, rng)
+                                 for _ in range(n_ensembles)]))
     gen = sampler.sample(p0, iterations=max_steps, store=True)
     tau_prev = None
     tau = np.full(d, np.nan)
@@ -307,7 +314,7 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
     tau = np.where(np.isfinite(tau), tau, steps / 2.0)
     burn = int(min(2 * np.max(tau), steps // 2))
     thin = max(1, int(0.5 * np.min(tau)))
-    full = sampler.get_chain(discard=burn, thin=thin)
+    full = tr.to_theta(sampler.get_chain(discard=burn, thin=thin))
     chains = [full[:, g, :] for g in groups]   # (n, nw, d) each independent ensemble
     n_keep = full.shape[0]
     flat = full.reshape(-1, d)

@@ -35,7 +35,7 @@ def test_sum_of_terms_matches_the_kernel_equations():
     th = m.theta_from(vals)
     af = filament_area_mm2(1.75)
     w = 0.45
-    exp = (0.2 * V ** 0.5 + 0.03 * af * V ** 2 + 0.1 + 0.2 * V / (V + 0.7)
+    exp = (0.2 / 0.5 * V ** 0.5 + 0.03 * af * V ** 2 + 0.1 + 0.2 * V / (V + 0.7)
            + 0.5 * 0.8 * np.tanh(w / 0.8))
     np.testing.assert_allclose(m.steady_advance_mm(th, V, width_mm=w), exp, rtol=1e-12)
     with pytest.raises(ValueError):

@@ -155,10 +155,39 @@ def test_serial_and_parallel_kernels_have_separate_compile_caches():
     serial and parallel builds of one kernel must not share a cache entry, or whichever
     compiled first is loaded for both (the parallel kernels then ran on one core)."""
     from fit import kernels as K
+    from fit import likelihood as L
 
-    for name in K.SERIAL:
-        ser, par = K.SERIAL[name], K.PARALLEL[name]
+    pairs = [(K.SERIAL[k], K.PARALLEL[k]) for k in K.SERIAL] + [(L._AR1_SERIAL, L._AR1_PARALLEL)]
+    for ser, par in pairs:
         assert ser.py_func.__code__ is par.py_func.__code__
         assert ser._cache._cache_file._index_name != par._cache._cache_file._index_name
         assert par.targetoptions.get("parallel") is True
         assert not ser.targetoptions.get("parallel")
+
+
+def test_physics_timeline_is_cut_after_the_last_deposit_a_station_sees(spiral_manifest, monkeypatch):
+    """Widths are causal: with stations on the test tracks only (as a measured scan has),
+    the fiducials, ruler and labels printed after the spiral cannot change a predicted
+    width. The cut timeline gives the same widths as the uncut one to rounding, and is
+    much shorter."""
+    import fit.context as C
+    from patterns.manifest import sample_points
+
+    man = spiral_manifest
+    test_ids = [t.id for t in man.tracks if t.kind == "test"]
+    st = sample_points(man)
+    keep = np.isin(st.track, test_ids)
+    stations = type(st)(**{f: np.asarray(getattr(st, f))[keep] for f in st.__dataclass_fields__})
+    cut = SimContext.build(man, stations)
+    monkeypatch.setattr(C, "last_needed_node", lambda ctx, margin_s=0.0: len(ctx.t_s) - 1)
+    whole = SimContext.build(man, stations)
+    assert cut.physics.t_s[-1] < 0.5 * whole.physics.t_s[-1]
+    for spec in ("pa+thermal", "pa+backpressure+nonlinear"):
+        model = build_model(spec, man.printer)
+        th = np.tile(model.default_theta(), (4, 1))
+        th[:, 0] = [0.02, 0.1, 0.5, 1.5]
+        a, b = model.predict(cut, th), model.predict(whole, th)
+        np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
+        ok = np.isfinite(a)
+        assert ok.sum() > 0.9 * ok.size
+        assert np.max(np.abs(a[ok] - b[ok])) < 1e-12

@@ -42,7 +42,7 @@ def preq_reference(vn, v):
     """Independent Python Preq(vn) (mm) for the parameter dict v (full names)."""
     tau = v["pa.tau_s"]
     n = v.get("nonlinear.n", 1.0)
-    p = tau * 1.0 * (vn / 1.0) ** n
+    p = tau / n * 1.0 * (vn / 1.0) ** n
     p += v.get("offset.kc_mm", 0.0)
     p += v.get("bernoulli.k_s2_mm3", 0.0) * (AF * vn) ** 2 / AF
     if "backpressure.kb" in v:
