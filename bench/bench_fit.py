@@ -24,7 +24,7 @@ Rows
   (fit.peers.ladder_pa: the ladder printed on the same virtual printer with the same
   noise, most even line) as a ratio to ours (> 1: ours is more accurate). The truths
   sit between ladder values, as a real printer's would;
-- speed: wall time of a `pa` fit on ~20,000 samples (<= 15 s) and of the four-parameter
+- speed: wall time (median of 3 seeds) of a `pa` fit on ~20,000 samples (<= 15 s) and of the four-parameter
   nonlinear composition pa+nonlinear+backpressure (<= 60 s).
 
 ``CALIB_BENCH_FIT_SEEDS`` sets the calibration seed count (default 40). Seeds run in 2
@@ -45,11 +45,17 @@ from bench.common import Row
 NOISE = {"sd_mm": 0.01, "sigma_extra_mm": 0.01, "corr_len_mm": 1.0}
 #: recovery/peer truths (between Orca ladder values: 0.042|0.044, 0.60|0.62)
 TRUTH = {"direct_drive": {"pa.tau_s": 0.043}, "long_bowden": {"pa.tau_s": 0.61}}
+#: Bead back-pressure of the direct drive. Kb is in mm of filament advance per mm of bead
+#: width, so like tau it scales with the compliance of the filament spring: seed 001 and
+#: the realdata AUTHOR-NOTES (Bowden) use Kf = tau 0.4-1 s with Kb 1-3, Kb / tau ~2-7.5
+#: per s; the direct drive's tau = 0.043 s gives Kb ~0.1-0.3. (Kb = 1 on a direct drive,
+#: 23x tau, made the bead the whole extruder lag and left pa/nonlinear unidentifiable.)
+KB_DIRECT = 0.2
 #: calibration truths (direct drive; data/truths/*.toml values where they fit 12 s of data)
 CAL_TRUTH = {
     "pa": {"pa.tau_s": 0.043},
     "pa+thermal": {"pa.tau_s": 0.043, "thermal.a": 0.1, "thermal.tau_s": 3.0},
-    "pa+backpressure": {"pa.tau_s": 0.043, "backpressure.kb": 1.0, "backpressure.w_sat_mm": 0.8},
+    "pa+backpressure": {"pa.tau_s": 0.043, "backpressure.kb": KB_DIRECT, "backpressure.w_sat_mm": 0.8},
 }
 SPIRAL = {"speeds": (20.0,), "n_steps": 6, "step_s": (3.0,)}        # 18 s, 1440 samples
 CAL_SPIRAL = {"speeds": (20.0,), "n_steps": 4, "step_s": (3.0,)}    # 12 s, 960 samples
@@ -198,9 +204,9 @@ def run() -> list[Row]:
             rows.append(Row("fit", f"{what} median |error| {np.median(perr):.2f} % / ours, {prof}",
                             ratio, "x", "> 1 (ours better)", ratio > 1))
     n_seeds = int(os.environ.get("CALIB_BENCH_FIT_SEEDS", "40"))
-    # capped chains (reported as not converged) keep 120 fits within minutes; coverage is
-    # about calibration, so it is counted over every seed, converged or not
-    cal_kw = {"max_steps": 3000, "max_time_s": 15.0}
+    # each fit converges in 2-10 s; the cap only stops a pathological chain (such a fit
+    # still counts: coverage is over every seed, and the row says how many converged)
+    cal_kw = {"max_steps": 20000, "max_time_s": 60.0}
     for spec, vals in CAL_TRUTH.items():
         res = _run([("calibration", "direct_drive", spec, vals, 1000 + s, CAL_SPIRAL, cal_kw)
                     for s in range(n_seeds)], workers, f"coverage {spec}")
@@ -209,20 +215,26 @@ def run() -> list[Row]:
             cov = float(np.mean([r[name][1] < v < r[name][2] for r in res])) * 100
             rows.append(Row("fit", f"{spec}: 90% interval coverage of {name}, {n_seeds} seeds "
                                    f"({n_conv} converged)", cov, "%", "80-97", 80 <= cov <= 97))
-    # speed: pa on ~20,000 samples (whole pattern: four spirals, ten 5 s steps)
-    kw = {"speeds": (15.0, 20.0, 25.0, 30.0), "n_steps": 10, "step_s": (5.0,), "trim": False}
-    r = _one(("speed", "direct_drive", "pa", {"pa.tau_s": 0.043}, 7, kw, {}))
-    _log(f"speed pa {r['time_s']:.1f} s")
-    rows.append(Row("fit", f"pa fit wall time, {r['n']} samples (converged={r['converged']})",
-                    r["time_s"], "s", "<= 15", r["time_s"] <= 15 and r["converged"]))
-    vals4 = {"pa.tau_s": 0.043, "nonlinear.n": 0.8, "backpressure.kb": 1.0,
-             "backpressure.w_sat_mm": 0.8}
-    kw = {"speeds": (15.0, 30.0), "n_steps": 6, "step_s": (3.0,), "trim": False}
-    r = _one(("speed", "direct_drive", "pa+nonlinear+backpressure", vals4, 8, kw, {}))
-    _log(f"speed 4-param {r['time_s']:.1f} s")
-    rows.append(Row("fit", f"pa+nonlinear+backpressure (4 params) fit wall time, {r['n']} samples "
-                           f"(converged={r['converged']})", r["time_s"], "s", "<= 60",
-                    r["time_s"] <= 60 and r["converged"]))
+    # speed: pa on ~20,000 samples (whole pattern: four spirals, ten 5 s steps), and the
+    # four-parameter nonlinear composition; the step count until the stopping rule holds
+    # varies from seed to seed (the 1 % tau-stability test), so each is timed on 3 seeds
+    # and the median is the figure (the slowest is in the label)
+    speed = (("pa", {"pa.tau_s": 0.043},
+              {"speeds": (15.0, 20.0, 25.0, 30.0), "n_steps": 10, "step_s": (5.0,), "trim": False}, 15),
+             ("pa+nonlinear+backpressure",
+              {"pa.tau_s": 0.043, "nonlinear.n": 0.8, "backpressure.kb": KB_DIRECT,
+               "backpressure.w_sat_mm": 0.8},
+              {"speeds": (15.0, 30.0), "n_steps": 6, "step_s": (3.0,), "trim": False}, 60))
+    for spec, vals, kw, target in speed:
+        res = [_one(("speed", "direct_drive", spec, vals, seed, kw, {})) for seed in (7, 8, 9)]
+        t = [r["time_s"] for r in res]
+        conv = sum(r["converged"] for r in res)
+        _log(f"speed {spec}: {', '.join(f'{x:.1f}' for x in t)} s")
+        k = len(vals)
+        rows.append(Row("fit", f"{spec} ({k} param{'s' * (k > 1)}) fit wall time, {res[0]['n']} samples, "
+                               f"median of 3 seeds (max {max(t):.1f} s, {conv}/3 converged)",
+                        float(np.median(t)), "s", f"<= {target}",
+                        float(np.median(t)) <= target and conv == 3))
     return list(rows)
 
 

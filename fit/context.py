@@ -119,6 +119,28 @@ class SimContext:
     def n_samples(self) -> int:
         return len(self.s_mm)
 
+    @property
+    def deposit_map(self) -> tuple:
+        """The deposit maps as the kernels take them (fit/kernels.py ``_deposit_row``):
+        (perm, lo_pos, lo_frac, lo_int, hi_pos, hi_frac, hi_int, inv_win) with lo_int =
+        perm[lo_pos], hi_int = perm[hi_pos] (timeline interval of each window edge) and
+        inv_win = 1 / win_mm (0 where the window is empty), built once."""
+        dm = self.cache.get("deposit_map")
+        if dm is None:
+            i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)      # noqa: E731
+            f64 = lambda a: np.ascontiguousarray(a, dtype=float)          # noqa: E731
+            perm = i64(self.perm)
+            if len(perm):
+                lo_int, hi_int = perm[self.lo_pos], perm[self.hi_pos]
+            else:
+                lo_int = hi_int = np.zeros(len(self.lo_pos), np.int64)
+            win = f64(self.win_mm)
+            inv = np.where(win > 1e-9, 1.0 / np.where(win > 1e-9, win, 1.0), 0.0)
+            dm = (perm, i64(self.lo_pos), f64(self.lo_frac), i64(lo_int), i64(self.hi_pos),
+                  f64(self.hi_frac), i64(hi_int), inv)
+            self.cache["deposit_map"] = dm
+        return dm
+
     @classmethod
     def build(cls, manifest, samples=None, profile=None, coarsen: bool = True) -> "SimContext":
         """Precompute from a :class:`Manifest` (with timeline) and stations.

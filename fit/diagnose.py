@@ -27,8 +27,10 @@ from fit.data import ScanData
 from fit.covariates import CovariateScore, Covariates, compute_covariates, score_covariates
 
 #: Effects never proposed as "missing": firmware_pa is a known input transform (it is
-#: what the firmware was told to do, read from the G-code), not physics to discover.
-NOT_CANDIDATES = frozenset({"firmware_pa"})
+#: what the firmware was told to do, read from the G-code), not physics to discover;
+#: scan_bias is the measurement's own calibration error, which a user adds to widen the
+#: intervals (it would soak up any static width-dependent signal of the physics).
+NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias"})
 
 #: The covariates each library effect leaves its mark on (for the verdict's evidence).
 EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {

@@ -481,6 +481,33 @@ class Heading(Effect):
         return w + p["a_mm"] * np.cos(th) + p["b_mm"] * np.sin(th)
 
 
+@register_effect
+class ScanBias(Effect):
+    """Calibration error of the width measurement itself, not of the printer:
+
+        w_measured = w + b0 + b1 * (w - w_ref)      (mm), w_ref = 0.5 mm
+
+    b0: an offset (edge threshold against the plate, blur, translucent edges); b1: a
+    relative error growing with width (scan scale, dpi, registration scale, edge bias
+    that depends on the bead's profile). The measure bench sees ~1 um of width-dependent
+    bias on a flatbed, more on phone photos and real plastics; with thousands of
+    samples that is several posterior sd of a back-pressure or thermal parameter, so a
+    fit that should not trust the scan's absolute scale adds this effect and its
+    intervals widen accordingly. Priors normal(0, 5 um) and normal(0, 0.02). A per-scan
+    nuisance in joint fits. b0 = b1 = 0: absent.
+    """
+
+    name = "scan_bias"
+    W_REF_MM = 0.5
+    params = (Param("b0_mm", "mm", 0.0, -0.05, 0.05, ("normal", 0.0, 0.005),
+                    doc="measured minus true width at w_ref"),
+              Param("b1", "1", 0.0, -0.2, 0.2, ("normal", 0.0, 0.02),
+                    doc="relative width scale error of the measurement"))
+
+    def width(self, ctx, w, p):
+        return w + p["b0_mm"] + p["b1"] * (w - self.W_REF_MM)
+
+
 # -----------------------------------------------------------------------------------
 # User effects
 

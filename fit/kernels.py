@@ -426,8 +426,7 @@ def nozzle_kernel(mode, ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, out, v
         x_end[i] = xe
 
 
-def predict_kernel(mode, ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, perm, lo_pos, lo_frac,
-                   hi_pos, hi_frac, win, area):
+def predict_kernel(mode, ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, dmap, area):
     """Nozzle then deposit (:func:`deposit_kernel`) per parameter set, without keeping the
     per-interval outflow: writes only the station cross-sections area (n_sets, n_s) mm^2."""
     n_sets = coef.shape[0]
@@ -435,9 +434,9 @@ def predict_kernel(mode, ve, ve_per_set, dt, vhead, hgt, on, coef, af, p0, perm,
     for i in prange(n_sets):
         out = np.empty(n_int)
         vn = np.empty(n_int + 1)
-        cbuf = np.empty(max(perm.shape[0], 1))
+        cbuf = np.empty(max(dmap[0].shape[0], 1))
         _nozzle_row(mode, ve, i * ve_per_set, dt, vhead, hgt, on, coef[i], af, p0[i], out, vn, True)
-        _deposit_row(out, vn, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], cbuf)
+        _deposit_row(out, vn, dmap, af, area[i], cbuf)
 
 
 @njit(cache=True)
@@ -471,9 +470,10 @@ def _placed(f, r0, r1):
 
 
 @njit(cache=True)
-def _deposit_row(out, vn, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area, c):
+def _deposit_row(out, vn, dmap, af, area, c):
     """One parameter set of :func:`deposit_kernel`; vn (n_int+1,) outflow at the nodes,
     c a scratch array (len(perm),)."""
+    perm, lo_pos, lo_frac, lo_int, hi_pos, hi_frac, hi_int, inv_win = dmap
     m = perm.shape[0]
     n_s = lo_pos.shape[0]
     if m == 0:
@@ -482,32 +482,32 @@ def _deposit_row(out, vn, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area,
         return
     acc = 0.0
     for j in range(m):
-        acc += out[perm[j]] * af
+        acc += out[perm[j]]
         c[j] = acc
     for k in range(n_s):
-        if win[k] > 1e-9:
-            a = lo_pos[k]
-            b = hi_pos[k]
-            ia = perm[a]
-            ib = perm[b]
-            v_lo = c[a] - (1.0 - _placed(lo_frac[k], vn[ia], vn[ia + 1])) * out[ia] * af
-            v_hi = c[b] - (1.0 - _placed(hi_frac[k], vn[ib], vn[ib + 1])) * out[ib] * af
-            area[k] = (v_hi - v_lo) / win[k]
+        iw = inv_win[k]
+        if iw > 0.0:
+            ia = lo_int[k]
+            ib = hi_int[k]
+            v_lo = c[lo_pos[k]] - (1.0 - _placed(lo_frac[k], vn[ia], vn[ia + 1])) * out[ia]
+            v_hi = c[hi_pos[k]] - (1.0 - _placed(hi_frac[k], vn[ib], vn[ib + 1])) * out[ib]
+            area[k] = (v_hi - v_lo) * af * iw
         else:
             area[k] = 0.0
 
 
-def deposit_kernel(out, vn_node, perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area):
+def deposit_kernel(out, vn_node, dmap, af, area):
     """Cross-section A_i (mm^2) over the station windows (fit/context.py):
     V(s_b) = C[pos] - (1 - F(frac)) * dV[perm[pos]],  C = cumsum(dV[perm]),  dV = Af * out,
     A_i = (V(hi_i) - V(lo_i)) / win_i, with F (:func:`_placed`) placing each interval's
     deposit along its arc length by the outflow at its two nodes (linear in between:
-    second order in dt/tau, where a uniform placement is first order)."""
+    second order in dt/tau, where a uniform placement is first order). dmap:
+    :attr:`fit.context.SimContext.deposit_map`."""
     n_sets = out.shape[0]
-    m = perm.shape[0]
+    m = dmap[0].shape[0]
     for i in prange(n_sets):
         c = np.empty(max(m, 1))
-        _deposit_row(out[i], vn_node[i], perm, lo_pos, lo_frac, hi_pos, hi_frac, win, af, area[i], c)
+        _deposit_row(out[i], vn_node[i], dmap, af, area[i], c)
 
 
 def bead_width_kernel(area, h, h_per_set, printed, out):
@@ -553,6 +553,17 @@ SERIAL = {k: b[0] for k, b in _BUILDS.items()}
 PARALLEL = {k: b[1] for k, b in _BUILDS.items()}
 #: Parameter sets from which the parallel kernels pay off.
 PARALLEL_MIN_SETS = 4
+
+
+def set_threads(n: int | None) -> int:
+    """Threads the parallel kernels use (None: every core numba sees); returns the count.
+    Worker processes of a batch each take their share, so that jobs x threads does not
+    oversubscribe the cores."""
+    import numba
+
+    n = numba.config.NUMBA_NUM_THREADS if n is None else max(1, min(int(n), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
 
 
 def kernel(name: str, n_sets: int):

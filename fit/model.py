@@ -240,8 +240,7 @@ class Model:
         if len(ctx.perm) == 0:
             return np.zeros((n, ctx.n_samples))
         area = np.empty((n, ctx.n_samples))
-        K.kernel("deposit", n)(out, vn, ctx.perm, ctx.lo_pos, ctx.lo_frac, ctx.hi_pos, ctx.hi_frac, ctx.win_mm,
-                         ctx.filament_area_mm2, area)
+        K.kernel("deposit", n)(out, vn, ctx.deposit_map, ctx.filament_area_mm2, area)
         return area
 
     def predict(self, ctx: SimContext, theta) -> np.ndarray:
@@ -255,8 +254,7 @@ class Model:
         n, pds, ve, ve_per_set, coef, p0 = self._nozzle_inputs(c, theta)
         area = np.empty((n, c.n_samples))
         K.kernel("predict", n)(self._mode, ve, ve_per_set, c.dt_s, c.v_head_mm_s, c.h_mm, c.on_track,
-                               coef, c.filament_area_mm2, p0, c.perm, c.lo_pos, c.lo_frac, c.hi_pos,
-                               c.hi_frac, c.win_mm, area)
+                               coef, c.filament_area_mm2, p0, c.deposit_map, area)
         return self._widths(c, area, pds, n)[0]
 
     #: nozzle terms whose steady advance is not linear in vn (Kalico match makes sense)

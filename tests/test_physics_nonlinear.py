@@ -220,6 +220,13 @@ def test_flow_gain_bed_tilt_heading():
     # Heading: travel along +x (theta = 0) adds a*cos(0) = a.
     w = build_model("pa+heading").predict(ctx, [0.02, 0.03, 0.05])[0]
     np.testing.assert_allclose(w[sel], 0.53, atol=1e-9)
+    # Scan bias: measured = w + b0 + b1 (w - 0.5 mm), on top of the physics (here w1 =
+    # 0.5 mm, then the stop; the 0.3 mm wide end region checks the slope term).
+    base = build_model("pa").predict(ctx, [0.02])[0]
+    w = build_model("pa+scan_bias").predict(ctx, [0.02, 0.004, 0.02])[0]
+    ok = np.isfinite(base)
+    np.testing.assert_allclose(w[ok], base[ok] + 0.004 + 0.02 * (base[ok] - 0.5), atol=1e-12)
+    assert np.ptp(base[ok]) > 0.1
 
 
 def test_user_effects_file(tmp_path):

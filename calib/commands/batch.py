@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -78,6 +79,12 @@ def fit_one(name, widths, manifest, model, priors=None, max_steps=20000, seed=0)
     return row
 
 
+def _worker_threads(n: int) -> None:
+    from fit.kernels import set_threads
+
+    set_threads(n)
+
+
 def run_batch(folder, model="pa", priors=None, jobs=2, scheduler=None, max_steps=20000,
               seed=0, progress=True) -> list[dict]:
     scans = find_scans(folder)
@@ -105,7 +112,8 @@ def run_batch(folder, model="pa", priors=None, jobs=2, scheduler=None, max_steps
             rows.append(fit_one(n, w, m, model, priors, max_steps, seed))
             bar.update(1)
     else:
-        with ProcessPoolExecutor(max_workers=jobs) as ex:
+        threads = max(1, (os.cpu_count() or 1) // jobs)
+        with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_threads, initargs=(threads,)) as ex:
             futs = [ex.submit(fit_one, n, w, m, model, priors, max_steps, seed) for n, w, m in scans]
             for f in as_completed(futs):
                 rows.append(f.result())

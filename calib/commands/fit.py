@@ -38,7 +38,8 @@ def add_parser(sub):
     p.add_argument("--max-steps", type=int, default=20000, help="cap on MCMC steps (default 20000)")
     p.add_argument("--max-time", type=float, default=None, metavar="S", help="cap on wall time (s)")
     p.add_argument("--map-only", action="store_true", help="only the MAP fit (fast, no posterior)")
-    p.add_argument("--jobs", type=int, default=1, help="threads for the physics kernel (default 1)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="threads for the physics kernels (default: every core)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--out", default="fit.json", help="output fit.json (default fit.json)")
     p.add_argument("--plots", metavar="DIR", help="write width/residual and corner plots here")
@@ -101,12 +102,11 @@ def run(args) -> int:
                 raise UserError(f"{f} does not exist")
     if args.max_steps < 1:
         raise UserError("--max-steps must be >= 1")
-    if args.jobs > 1:
-        try:
-            import numba
-            numba.set_num_threads(min(args.jobs, numba.config.NUMBA_NUM_THREADS))
-        except Exception:
-            pass
+    if args.jobs is not None and args.jobs < 1:
+        raise UserError("--jobs must be >= 1")
+    from fit.kernels import set_threads
+
+    set_threads(args.jobs)
     res, problem = run_fit(pairs, args.model, priors=args.priors, effects=args.effects,
                            student_nu=args.student_t, ar1=not args.no_ar1,
                            max_steps=args.max_steps, max_time_s=args.max_time, seed=args.seed,
