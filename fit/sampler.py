@@ -6,7 +6,8 @@ forward differences evaluated in *one* vectorised model call; the covariance is 
 Laplace approximation (inverse Hessian of -log posterior by central differences, mapped
 back to theta by the Jacobian of exp).
 
-``fit_mcmc``: emcee 3 EnsembleSampler (vectorize=True) with the mixture
+``fit_mcmc``: emcee 3 EnsembleSampler (vectorize=True; walkers in the same z as the MAP
+search, with the log-Jacobian) with the mixture
 [(DEMove, 0.8), (DESnookerMove, 0.2)] (ter Braak & Vrugt 2008; mixes 2-3x faster than the
 stretch move on these correlated posteriors). Several *independent* ensembles (default
 2), started from separate draws of the Laplace approximation around the MAP, so that the
@@ -251,11 +252,10 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
     rng = np.random.default_rng(seed)
 
     # The walkers move in z (log theta for positive parameters, as the MAP search): the
-    # posterior is then closer to Gaussian, and the products that the data pin down
-    # (tau*n of a power-law nozzle, Kb*w_sat of a saturated back-pressure) become linear
-    # combinations of the coordinates, which the affine-invariant DE moves sample
-    # efficiently; in theta they are curved ridges. The log-Jacobian keeps the target the
-    # same posterior.
+    # posterior is then closer to Gaussian, and products that the data pin down (Kb*w_sat
+    # of a saturated back-pressure, a*tau_th of thermal ooze) become linear combinations
+    # of the coordinates, which the affine-invariant DE moves sample efficiently; in theta
+    # they are curved ridges. The log-Jacobian keeps the target the same posterior.
     def logp(z):
         return _logpost_z(problem, tr, z)
 
