@@ -59,6 +59,10 @@ CAL_TRUTH = {
 }
 SPIRAL = {"speeds": (20.0,), "n_steps": 6, "step_s": (3.0,)}        # 18 s, 1440 samples
 CAL_SPIRAL = {"speeds": (20.0,), "n_steps": 4, "step_s": (3.0,)}    # 12 s, 960 samples
+#: pa+backpressure: the saturating Kb*w_sat*tanh(w/w_sat) needs more than the default two
+#: width levels to pin w_sat (with 0.35/0.8 only, w_sat ran up its prior to 1.5 mm and
+#: dragged tau with it: 77.5 % coverage of tau); three levels over 18 s, 1440 samples
+CAL_SPIRAL_BP = {"speeds": (20.0,), "n_steps": 6, "step_s": (3.0,), "widths_mm": (0.35, 0.6, 0.8)}
 
 
 def _log(msg):
@@ -78,7 +82,7 @@ def track_only(man, pad_s: float = 1.0):
 
 
 def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=6, step_s=(3.0,),
-              trim=True):
+              trim=True, widths_mm=(0.35, 0.8)):
     """(model, ScanData, manifest) of a noisy virtual spiral-step print."""
     from fit.data import scan_from_table
     from fit.model import build_model
@@ -87,7 +91,8 @@ def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=6, step_
     from patterns.profile import load_profile
 
     prof = load_profile(profile_name)
-    _, man = spiral_step.generate(prof, speeds_mm_s=speeds, n_steps=n_steps, step_s=step_s)
+    _, man = spiral_step.generate(prof, speeds_mm_s=speeds, n_steps=n_steps, step_s=step_s,
+                                  widths_mm=widths_mm)
     if trim:
         man = track_only(man)
     model = build_model(spec, prof)
@@ -212,7 +217,8 @@ def run() -> list[Row]:
     # converged; R-hat just above 1.01 is the other way a fit is not counted converged)
     cal_kw = {"max_steps": 20000, "max_time_s": 120.0}
     for spec, vals in CAL_TRUTH.items():
-        res = _run([("calibration", "direct_drive", spec, vals, 1000 + s, CAL_SPIRAL, cal_kw)
+        spiral = CAL_SPIRAL_BP if "backpressure" in spec else CAL_SPIRAL
+        res = _run([("calibration", "direct_drive", spec, vals, 1000 + s, spiral, cal_kw)
                     for s in range(n_seeds)], workers, f"coverage {spec}")
         n_conv = sum(r["converged"] for r in res)
         for name, v in vals.items():
