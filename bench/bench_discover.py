@@ -10,7 +10,7 @@ chi-square before and after adding the true effect.
 from __future__ import annotations
 
 import numpy as np
-from tqdm import tqdm
+from calib.progress import progress
 
 from bench.common import Row
 
@@ -43,7 +43,7 @@ def run() -> list[Row]:
     rows: list[Row] = []
     lib_first, lib_n = 0, 0
     chi2_after_all = []
-    with tqdm(total=SEEDS * len(EFFECTS), desc="bench_discover") as bar:
+    with progress(total=SEEDS * len(EFFECTS), desc="bench_discover") as bar:
         for h in EFFECTS:
             res = []
             for s in range(SEEDS):

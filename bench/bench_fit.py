@@ -36,11 +36,11 @@ import math
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
 from bench.common import Row
+from calib.parallel import process_pool
 
 NOISE = {"sd_mm": 0.01, "sigma_extra_mm": 0.01, "corr_len_mm": 1.0}
 #: recovery/peer truths (between Orca ladder values: 0.042|0.044, 0.60|0.62)
@@ -168,7 +168,7 @@ def _run(jobs, workers, label):
     from fit.kernels import set_threads
 
     # one numba thread per worker process: 2 workers x 2 threads would oversubscribe
-    with ProcessPoolExecutor(max_workers=workers, initializer=set_threads, initargs=(1,)) as ex:
+    with process_pool(workers, initializer=set_threads, initargs=(1,)) as ex:
         res = []
         for i, r in enumerate(ex.map(_one, jobs)):
             res.append(r)

@@ -140,7 +140,8 @@ h1{font-size:22px}h2{font-size:18px;border-bottom:1px solid #ccc;margin-top:28px
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
 th{background:#eee}td:first-child{text-align:left}.verdict{background:#eef6ff;border-left:5px solid #1f77b4;
 padding:10px 14px;font-size:15px}.grid{display:flex;flex-wrap:wrap;gap:8px}.grid img{max-width:48%}
-code{background:#f4f4f4;padding:1px 4px}"""
+code{background:#f4f4f4;padding:1px 4px}.quality{padding:8px 14px;margin:10px 0}
+.quality.ok{background:#eefbee;border-left:5px solid #2ca02c}.quality.bad{background:#fdecea;border-left:5px solid #d62728}"""
 
 
 def build_report(title: str, obs=None, comparison=None, diagnosis=None, compare_doc=None,
@@ -236,8 +237,17 @@ def _fit_section(doc) -> str:
                    f"<td>{_fmt(lo95, '{:.5g}')} - {_fmt(hi95, '{:.5g}')}</td>"
                    f"<td>{_fmt(p.get('rhat'), '{:.4f}')}</td><td>{_fmt(p.get('ess'), '{:.0f}')}</td></tr>")
     out.append("</table>")
+    from fit.trust import CHI2_NU_MAX, assess
+
+    v = assess(doc, chi2_max=(doc.get("trust") or {}).get("checks", {}).get("chi2_nu_max", CHI2_NU_MAX))
+    lines = v.lines()
+    cls = "ok" if v.trustworthy else "bad"
+    out.append(f"<div class='quality {cls}'><p><b>{html.escape(lines[0])}</b></p><ul>"
+               + "".join(f"<li>{html.escape(x.strip(' -'))}</li>" for x in lines[1:]) + "</ul></div>")
     fw = doc.get("derived", {}).get("firmware", {})
-    if fw:
+    if fw and not v.trustworthy:
+        out.append("<p>No firmware lines: the values above are not trustworthy.</p>")
+    elif fw:
         out.append("<p>Firmware:</p><pre>" + html.escape("\n".join(
             f"{k:15s} {v}" for k, v in fw.items() if "\n" not in v)) + "</pre>")
     return "\n".join(out)

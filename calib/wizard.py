@@ -68,12 +68,11 @@ def run_wizard(inp=sys.stdin, out=sys.stdout, port: str | None = None, baud: int
     r.say(f"   open {folder / (pattern + '.preview.png')} to see what will be printed")
 
     if port or ask.yes("send it to the printer over USB now?", False):
-        from tqdm import tqdm
-
+        from calib.progress import progress as progress_bar
         from calib.sender import open_port, send_gcode
 
         dev = port or ask.ask("serial port", "/dev/ttyUSB0")
-        with tqdm(total=1, desc="sending", unit="line", file=sys.stderr) as bar:
+        with progress_bar(total=1, desc="sending", unit="line") as bar:
             def progress(done, total):
                 bar.total = total
                 bar.n = done
@@ -111,5 +110,14 @@ def run_wizard(inp=sys.stdin, out=sys.stdout, port: str | None = None, baud: int
             r.step("fitting the extended model",
                    ["fit", widths, "--manifest", man, "--model", model, "-o", fit_json], ok_codes=(0, 3))
     flavour = {"klipper": "klipper", "marlin": "marlin", "rrf": "rrf"}.get(profile.firmware, "marlin")
+    from calib.commands.fit import verdict_text
+    from fit.result import load_fit_json
+    from fit.trust import assess
+
+    verdict = assess(load_fit_json(fit_json))
+    r.say(verdict_text(verdict.to_json()))
+    if not verdict.trustworthy:
+        r.say("   no firmware line: fix what is listed above first (the values would be wrong)")
+        return {"folder": str(folder), "model": model, "fit": str(fit_json), "trustworthy": False}
     r.step(f"your firmware line ({flavour})", ["export", fit_json, "--to", flavour])
     return {"folder": str(folder), "model": model, "fit": str(fit_json)}

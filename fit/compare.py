@@ -318,10 +318,10 @@ def compare_models(scan: ScanData, models: dict, full: bool = True, seed: int = 
     that extends another starts at that model's optimum and never fits worse than it.
     ``noise``: the engine's noise options (default: AR(1) along tracks, Gaussian).
     """
-    from tqdm import tqdm
+    from calib.progress import progress as bar
 
     fits: list[ModelFit] = []
-    for spec, model in tqdm(models.items(), desc="compare", disable=not progress):
+    for spec, model in bar(list(models.items()), desc="compare", unit="model", disable=not progress):
         problem = _problem(model, scan, noise)
         f = fit_model(model, scan, spec, warm=fits, seed=seed, problem=problem)
         fits.append(f)

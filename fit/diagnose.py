@@ -140,7 +140,7 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
     convergence, at most ``max_steps`` steps, + PSIS-LOO) of the base model and of that
     many best candidates.
     """
-    from tqdm import tqdm
+    from calib.progress import progress as bar
 
     model = build(spec)
     fit_kw = dict(n_random=n_random, n_polish=n_polish, seed=seed)
@@ -153,7 +153,7 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
 
     names = candidate_names(spec, library, user)
     cands: list[Candidate] = []
-    for name in tqdm(names, desc="candidates", disable=not progress):
+    for name in bar(names, desc="candidates", unit="model", disable=not progress):
         ext = f"{spec}+{name}"
         try:
             f = fit_model(build(ext), scan, ext, warm=[base], **fit_kw)

@@ -47,6 +47,7 @@ class MapResult:
     success: bool
     n_starts: int = 1
     message: str = ""
+    modes: list = field(default_factory=list)   # distinct optima, best first (fit.modes)
 
     @property
     def bic(self) -> float:
@@ -66,7 +67,8 @@ class MapResult:
                 "sd": dict(zip(self.param_names, map(float, sd))),
                 "log_post": self.log_post, "loglik": self.loglik, "bic": self.bic,
                 "aic": self.aic, "n_obs": self.n_obs, "k": self.k, "rms_mm": self.rms_mm,
-                "chi2_nu": self.chi2_nu, "success": self.success, "message": self.message}
+                "chi2_nu": self.chi2_nu, "success": self.success, "message": self.message,
+                "modes": self.modes}
 
 
 @dataclass
@@ -110,6 +112,7 @@ class FitResult:
     profile: dict = field(default_factory=dict)
     priors: dict = field(default_factory=dict)
     seed: int | None = None
+    trust: dict = field(default_factory=dict)     # fit.trust.Verdict.to_json()
 
     @property
     def converged(self) -> bool:
@@ -132,7 +135,7 @@ class FitResult:
                             "n_obs": self.map.n_obs, "k": self.map.k, "rms_mm": self.map.rms_mm,
                             "chi2_nu": self.map.chi2_nu, "loo": self.loo},
             "derived": self.derived, "profile": self.profile, "priors": self.priors,
-            "seed": self.seed,
+            "seed": self.seed, "trust": self.trust,
             "samples": np.round(self.samples, 7).tolist(),
             "predictions": self.predictions,
         }

@@ -13,12 +13,13 @@ stretch move on these correlated posteriors). Several *independent* ensembles (d
 2), started from separate draws of the Laplace approximation around the MAP, so that the
 rank-normalised split R-hat (Vehtari et al. 2021) compares chains that never exchanged
 information (R-hat across walkers of one ensemble is not meaningful: the walkers are
-coupled by the moves). Stopping rule (emcee docs, Goodman & Weare 2010): every
+coupled by the moves). Stopping rule (emcee docs, Goodman & Weare 2010; Vehtari et al. 2021): every
 ``check_every`` steps compute the integrated autocorrelation time tau of every parameter
-in every ensemble; stop when the chain is longer than ``tau_factor`` x max tau and max tau
-changed by less than ``tau_rtol`` since the last check. Burn-in 2 max tau is
-discarded and the chains thinned by tau/2. A run that hits ``max_steps`` or ``max_time_s``
-first, or ends with R-hat > ``rhat_max``, is reported as *not converged*
+in every ensemble; once the chain is longer than ``tau_factor`` x max tau and max tau
+changed by less than ``tau_rtol`` since the last check, compute the split R-hat of the
+post-burn-in chains and stop when it is below ``rhat_max`` for every parameter; otherwise
+keep sampling. Burn-in 2 max tau is discarded and the chains thinned by tau/2. A run that
+hits ``max_steps`` or ``max_time_s`` first is reported as *not converged*
 (``FitResult.diagnostics["converged"] = False``; ``calib fit`` exits with code 3).
 """
 from __future__ import annotations
@@ -31,10 +32,11 @@ import emcee
 import numpy as np
 from scipy.optimize import minimize
 from scipy.special import logsumexp
-from tqdm import tqdm
 
 from calib.errors import UserError
+from calib.progress import progress as progress_bar
 from fit.likelihood import CORR_NAME, SIGMA_NAME, JointProblem, NoiseOptions
+from fit.modes import distinct_modes, global_starts, physical_mask
 from fit.result import FitResult, MapResult, ParamSummary
 
 EXIT_NOT_CONVERGED = 3
@@ -130,26 +132,35 @@ def _hessian_z(problem, tr, z0, h=1e-3):
 
 
 def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
-            prior_overrides=None, extra_effects=(), x0=None, maxiter: int = 400) -> MapResult:
+            prior_overrides=None, extra_effects=(), x0=None, maxiter: int = 400,
+            global_search: bool = False) -> MapResult:
     """Maximum a posteriori fit. ``fit_map(problem)`` or ``fit_map(model, data)`` (see
     :func:`make_problem`). Starts: ``x0`` (or the model defaults) and ``n_starts - 1`` prior
-    draws; the best optimum wins."""
+    draws; the best optimum wins.
+
+    ``global_search``: instead of prior draws, start from the distinct basins a
+    differential evolution over the whole prior support finds (:mod:`fit.modes`, fixed
+    seed: the MAP then does not depend on ``seed``); every distinct optimum is kept in
+    ``MapResult.modes`` (best first, with BIC)."""
     problem = model if isinstance(model, JointProblem) else make_problem(
         model, data, noise, prior_overrides, extra_effects)
     tr = _Transform(problem)
     rng = np.random.default_rng(seed)
     starts = [problem.default_theta() if x0 is None else np.asarray(x0, dtype=float)]
     lo, hi = problem.bounds.T
-    for _ in range(max(0, n_starts - 1)):
-        th = np.array([p.sample(rng, 1)[0] for p in problem.priors])
-        # noise parameters start at a typical scale; prior draws of those are wasteful
-        for j, n in enumerate(problem.param_names):
-            if n.startswith(SIGMA_NAME) or n.startswith(CORR_NAME):
-                th[j] = starts[0][j]
-        starts.append(np.clip(th, lo, hi))
     # a small step inside the bounds keeps finite differences legal
     zlo, zhi = tr.zlo + 1e-9, tr.zhi - 1e-9
     d = problem.ndim
+    phys = physical_mask(problem.param_names)
+    if global_search:
+        starts += [tr.to_theta(z) for z in global_starts(
+            lambda Z: -_logpost_z(problem, tr, Z), zlo, zhi, phys)]
+    else:
+        for _ in range(max(0, n_starts - 1)):
+            th = np.array([p.sample(rng, 1)[0] for p in problem.priors])
+            # noise parameters start at a typical scale; prior draws of those are wasteful
+            th[~phys] = starts[0][~phys]
+            starts.append(np.clip(th, lo, hi))
 
     def fun_grad(z):
         h = 1e-6 * np.maximum(1.0, np.abs(z))
@@ -161,7 +172,7 @@ def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
         g = np.where(np.isfinite(f[1:]), (f[1:] - f[0]) / h, 0.0)
         return float(f[0]), g
 
-    best, n_ok = None, 0
+    optima = []
     for s in starts:
         z0 = np.clip(tr.to_z(np.clip(s, lo, hi)), zlo, zhi)
         f0, _ = fun_grad(z0)
@@ -171,12 +182,12 @@ def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
             warnings.simplefilter("ignore")
             res = minimize(fun_grad, z0, jac=True, method="L-BFGS-B",
                            bounds=list(zip(zlo, zhi)), options={"maxiter": maxiter})
-        n_ok += 1
-        if best is None or res.fun < best.fun:
-            best = res
-    if best is None:
+        optima.append((res.x, res))
+    if not optima:
         raise UserError("the model cannot reproduce these widths at any starting point "
                         "(log-likelihood is -inf everywhere); check the manifest and the model")
+    optima.sort(key=lambda o: o[1].fun)
+    best = optima[0][1]
     z = best.x
     theta = tr.to_theta(z)
     try:
@@ -188,7 +199,20 @@ def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
         cov_z = np.diag(np.full(d, 1e-4))
     J = np.where(tr.log, theta, 1.0)
     cov = cov_z * np.outer(J, J)
-    return _map_result(problem, theta, cov, best, n_ok, model_label(problem, model))
+    out = _map_result(problem, theta, cov, best, len(optima), model_label(problem, model))
+    if global_search:
+        out.modes = _mode_table(problem, tr, distinct_modes(optima, phys))
+    return out
+
+
+def _mode_table(problem, tr, modes) -> list[dict]:
+    """Every distinct optimum, best first: parameter values, ln posterior, ln L and BIC."""
+    th = np.array([tr.to_theta(z) for z, _ in modes])
+    lp, ll = problem.log_prob(th)
+    n, k = problem.n_obs, problem.ndim
+    return [{"values": dict(zip(problem.param_names, map(float, t))), "log_post": float(lp[i]),
+             "loglik": float(ll[i].sum()), "bic": float(k * math.log(n) - 2.0 * ll[i].sum())}
+            for i, t in enumerate(th)]
 
 
 def _map_result(problem, theta, cov, res, n_ok, label) -> MapResult:
@@ -272,8 +296,8 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
     tau = np.full(d, np.nan)
     stop_reason = "max_steps"
     steps = 0
-    bar = tqdm(total=max_steps, desc=f"fit {label}", unit="step", disable=not progress,
-               leave=False, mininterval=0.5)
+    bar = progress_bar(total=max_steps, desc=f"fit {label}", unit="step", disable=not progress,
+                       leave=False)
     history = []
 
     def group_tau():
@@ -285,6 +309,15 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
             # by estimator noise
             return emcee.autocorr.integrated_time(ch, tol=0)
 
+    def posterior(tau_now):
+        """Post-burn-in, thinned chains (n, walkers, d) per ensemble and their split R-hat."""
+        tau_now = np.where(np.isfinite(tau_now), tau_now, steps / 2.0)
+        burn = int(min(2 * np.max(tau_now), steps // 2))
+        thin = max(1, int(0.5 * np.min(tau_now)))
+        full = tr.to_theta(sampler.get_chain(discard=burn, thin=thin))
+        return full, [full[:, g, :] for g in groups], burn, thin
+
+    rhat = np.full(d, np.inf)
     try:
         for steps in range(1, max_steps + 1):
             next(gen)
@@ -292,16 +325,24 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
             if steps % check_every == 0:
                 tau = group_tau()
                 history.append([steps, float(np.max(tau))])
-                bar.set_postfix(tau=f"{np.max(tau):.1f}", need=int(tau_factor * np.max(tau)))
                 # The chain-length rule is N > tau_factor * max(tau); what must be stable is
                 # that max. Requiring every parameter's noisy tau estimate to move < 1 %
                 # between checks at once almost never happens with 5+ parameters.
                 stable = tau_prev is not None and \
                     abs(np.max(tau) - np.max(tau_prev)) / np.max(tau) < tau_rtol
-                if steps >= min_steps and np.all(np.isfinite(tau)) and \
-                        steps > tau_factor * np.max(tau) and stable:
-                    stop_reason = "tau"
-                    break
+                long_enough = steps >= min_steps and np.all(np.isfinite(tau)) and \
+                    steps > tau_factor * np.max(tau) and stable
+                if long_enough:
+                    # Only then is R-hat worth computing; a chain that is long enough but
+                    # whose ensembles still disagree (a noise parameter at its bound mixes
+                    # slowly) keeps sampling instead of stopping "not converged".
+                    rhat = _split_rhat(posterior(tau)[1])
+                    history[-1].append(float(np.max(rhat)))
+                    if np.all(rhat < rhat_max):
+                        stop_reason = "converged"
+                        break
+                bar.set_postfix(tau=f"{np.max(tau):.1f}", need=int(tau_factor * np.max(tau)),
+                                rhat=f"{np.max(rhat):.3f}")
                 tau_prev = tau
                 if max_time_s is not None and time.perf_counter() - t0 > max_time_s:
                     stop_reason = "max_time"
@@ -312,17 +353,13 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
     if not np.all(np.isfinite(tau)) or steps % check_every:
         tau = group_tau()
     tau = np.where(np.isfinite(tau), tau, steps / 2.0)
-    burn = int(min(2 * np.max(tau), steps // 2))
-    thin = max(1, int(0.5 * np.min(tau)))
-    full = tr.to_theta(sampler.get_chain(discard=burn, thin=thin))
-    chains = [full[:, g, :] for g in groups]   # (n, nw, d) each independent ensemble
-    n_keep = full.shape[0]
+    full, chains, burn, thin = posterior(tau)
     flat = full.reshape(-1, d)
     rhat = _split_rhat(chains)
     n_post = steps - burn
     ess = n_ensembles * nw * n_post / tau
     acc = float(np.mean(sampler.acceptance_fraction))
-    converged = stop_reason == "tau" and bool(np.all(rhat < rhat_max))
+    converged = stop_reason == "converged" and bool(np.all(rhat < rhat_max))
     diag = {
         "converged": converged, "stop_reason": stop_reason, "n_steps": steps,
         "n_walkers": nw, "n_ensembles": n_ensembles, "burn_in": burn, "thin": thin,
@@ -335,12 +372,13 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
         "tau_history": history,
     }
     if not converged:
-        why = {"max_steps": f"hit the cap of {max_steps} steps before the chain was "
-                            f"{tau_factor:g} tau long with a stable tau",
+        long_enough = steps > tau_factor * np.max(tau)
+        why = {"max_steps": f"hit the cap of {max_steps} steps before "
+                            + (f"the independent ensembles agreed (R-hat {np.max(rhat):.3f} > {rhat_max})"
+                               if long_enough else
+                               f"the chain was {tau_factor:g} tau long with a stable tau"),
                "max_time": f"hit the time cap of {max_time_s} s"}.get(stop_reason, "")
-        if stop_reason == "tau":
-            why = f"R-hat {np.max(rhat):.3f} > {rhat_max}: the independent ensembles disagree"
-        diag["warning"] = "NOT CONVERGED: " + why
+        diag["warning"] = "NOT CONVERGED: " + why + "; raise --max-steps or --max-time"
     params = {n: ParamSummary.from_draws(n, flat[:, j], map_result.theta[j], tau=float(tau[j]),
                                          ess=float(ess[j]), rhat=float(rhat[j]))
               for j, n in enumerate(problem.param_names)}

@@ -488,7 +488,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         raise ValueError(f"plate must be 'dark' or 'light', not {plate!r}")
     if plastic not in ("opaque", "translucent"):
         raise ValueError(f"plastic must be 'opaque' or 'translucent', not {plastic!r}")
-    from tqdm import tqdm
+    from calib.progress import progress as progress_bar
 
     rng = np.random.default_rng(seed)
     lighting = lighting or Lighting.for_camera(camera.kind, rng)
@@ -496,7 +496,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         blur_px = 1.2 if camera.kind == "phone" else 0.7
     W, H = camera.image_size
     ss = int(supersample)
-    bar = tqdm(total=5, desc="render", unit="step", disable=not progress, leave=False)
+    bar = progress_bar(total=5, desc="render", unit="step", disable=not progress, leave=False)
     Hinv = np.linalg.inv(camera.H)
     cx, cy = camera.center_px
     # 1. bed coordinates of every sub-pixel and every pixel

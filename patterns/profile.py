@@ -86,6 +86,10 @@ class PrinterProfile:
     max_z_accel_mm_s2: float = 100.0
     #: Klipper's minimum_cruise_ratio is not modelled (see planner docstring).
     supports_relative_e: bool = True
+    #: Does the firmware honour its pressure-advance command (Marlin M900 K, RRF M572,
+    #: Klipper SET_PRESSURE_ADVANCE)? False where it is known to ignore it; `calib export`
+    #: then says so and points at the slicer-side route (KISSlicer VE).
+    firmware_pressure_advance: bool = True
     travel_speed_mm_s: float | None = None
     description: str = ""
     extra: dict = field(default_factory=dict)
@@ -220,10 +224,11 @@ def profile_from_dict(doc: dict, source: str = "profile") -> PrinterProfile:
             if not isinstance(doc[key], str):
                 raise UserError(f"{source}: {key} must be a string")
             vals[key] = doc[key]
-    if "supports_relative_e" in doc:
-        if not isinstance(doc["supports_relative_e"], bool):
-            raise UserError(f"{source}: supports_relative_e must be true or false")
-        vals["supports_relative_e"] = doc["supports_relative_e"]
+    for key in ("supports_relative_e", "firmware_pressure_advance"):
+        if key in doc:
+            if not isinstance(doc[key], bool):
+                raise UserError(f"{source}: {key} must be true or false")
+            vals[key] = doc[key]
     extra = {k: v for k, v in doc.items() if k not in known}
     prof = PrinterProfile(**vals, extra=extra)
     for key in ("start_gcode", "end_gcode"):

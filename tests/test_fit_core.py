@@ -199,6 +199,24 @@ def test_non_convergence_is_reported():
     assert "NOT CONVERGED" in r.diagnostics["warning"]
 
 
+def test_sampler_keeps_going_until_the_ensembles_agree():
+    """The autocorrelation rule alone is not convergence: with an R-hat bar no finite chain
+    reaches (1.00001), the sampler must not stop at ~50 tau and call it done, but run to
+    its cap and say that R-hat, not the chain length, is what was missing."""
+    sc = make_scan(seed=7, n_tracks=2, n_per=80)
+    r = fit_mcmc(ToyModel(), sc, seed=0, progress=False, max_steps=900, check_every=50,
+                 tau_factor=10, tau_rtol=1.0, rhat_max=1.00001, n_loo_draws=30)
+    d = r.diagnostics
+    assert d["stop_reason"] == "max_steps" and d["n_steps"] == 900
+    assert d["n_steps"] > 10 * max(d["tau_steps"].values())   # long enough by the tau rule
+    assert "R-hat" in d["warning"] and not r.converged
+    # a reachable bar on the same data stops on both criteria, well before the cap
+    ok = fit_mcmc(ToyModel(), sc, seed=0, progress=False, max_steps=6000, n_loo_draws=30)
+    assert ok.converged and ok.diagnostics["stop_reason"] == "converged"
+    assert max(ok.diagnostics["rhat"].values()) < 1.01
+    assert ok.diagnostics["n_steps"] > 50 * max(ok.diagnostics["tau_steps"].values())
+
+
 def test_joint_fit_shares_tau_and_keeps_per_scan_gains():
     a = make_scan("a", tau=0.4, gain=0.95, seed=11, n_tracks=4)
     b = make_scan("b", tau=0.4, gain=1.08, seed=12, n_tracks=4)

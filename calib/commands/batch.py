@@ -10,13 +10,14 @@ from __future__ import annotations
 import csv
 import io
 import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
+import sys
+from concurrent.futures import as_completed
 from pathlib import Path
-
-from tqdm import tqdm
 
 from calib.errors import UserError
 from calib.fileio import atomic_write_text
+from calib.parallel import process_pool
+from calib.progress import progress as progress_bar
 
 
 def add_parser(sub):
@@ -66,10 +67,12 @@ def fit_one(name, widths, manifest, model, priors=None, max_steps=20000, seed=0)
         res, _ = run_fit([(widths, manifest)], model, priors=priors, max_steps=max_steps,
                          seed=seed, progress=False)
     except UserError as exc:
-        return {**row, "converged": False, "error": str(exc)}
+        return {**row, "converged": False, "trustworthy": False, "error": str(exc)}
     out = Path(widths).with_name(f"{name}.fit.json")
     res.save(out)
-    row.update(converged=res.converged, rms_um=round(res.map.rms_mm * 1000, 2),
+    row.update(converged=res.converged, trustworthy=bool(res.trust.get("trustworthy")),
+               problems="; ".join(res.trust.get("problems", [])),
+               rms_um=round(res.map.rms_mm * 1000, 2),
                chi2_nu=round(res.map.chi2_nu, 3), n_steps=res.diagnostics["n_steps"],
                fit_json=str(out), error="")
     for n, p in res.params.items():
@@ -89,7 +92,7 @@ def run_batch(folder, model="pa", priors=None, jobs=2, scheduler=None, max_steps
               seed=0, progress=True) -> list[dict]:
     scans = find_scans(folder)
     rows = []
-    bar = tqdm(total=len(scans), desc="batch", unit="scan", disable=not progress)
+    bar = progress_bar(total=len(scans), desc="batch", unit="scan", disable=not progress)
     if scheduler:
         try:
             from dask.distributed import Client, as_completed as dask_completed
@@ -113,7 +116,7 @@ def run_batch(folder, model="pa", priors=None, jobs=2, scheduler=None, max_steps
             bar.update(1)
     else:
         threads = max(1, (os.cpu_count() or 1) // jobs)
-        with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_threads, initargs=(threads,)) as ex:
+        with process_pool(jobs, initializer=_worker_threads, initargs=(threads,)) as ex:
             futs = [ex.submit(fit_one, n, w, m, model, priors, max_steps, seed) for n, w, m in scans]
             for f in as_completed(futs):
                 rows.append(f.result())
@@ -141,6 +144,10 @@ def run(args) -> int:
         pa = r.get("pa.tau_s")
         txt = (f"tau {pa:.4f} s [{r['pa.tau_s_lo95']:.4f}, {r['pa.tau_s_hi95']:.4f}]"
                if pa is not None else r.get("error", ""))
-        print(f"{r['scan']:24s} {'ok ' if r.get('converged') else 'NOT CONVERGED'} {txt}")
+        state = ("ok" if r.get("trustworthy") else "NOT TRUSTWORTHY") if r.get("converged") \
+            else "NOT CONVERGED"
+        print(f"{r['scan']:24s} {state:15s} {txt}")
+        if r.get("converged") and not r.get("trustworthy"):
+            print(f"{'':24s} {r.get('problems', '')}", file=sys.stderr)
     print(f"wrote {out}")
     return 0 if all(r.get("converged") for r in rows) else 3

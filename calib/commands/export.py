@@ -1,6 +1,8 @@
 """`calib export fit.json --to klipper|marlin|rrf|orca|kisslicer [--profile FILE]`.
 
-Without --profile: print the snippet. With --profile: update the file in place, after a
+A fit that fit/trust.py calls not trustworthy (misfit, a value on a prior bound, rival
+modes, not converged) is refused with one line and exit 2 unless ``--force``; warnings go
+to stderr, never into the snippet. Without --profile: print the snippet. With --profile: update the file in place, after a
 timestamped backup (calib.fileio.backup), with an atomic write:
   klipper  printer.cfg: ``pressure_advance:`` in the [extruder] section (added if missing)
   orca     filament JSON: "pressure_advance": ["K"] (string array) and
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +34,43 @@ def add_parser(sub):
     p.add_argument("fit", help="fit.json from `calib fit`")
     p.add_argument("--to", required=True, choices=TARGETS, help="target firmware or slicer")
     p.add_argument("--profile", help="file to update in place (printer.cfg, filament .json, ...)")
+    p.add_argument("--force", action="store_true",
+                   help="export a fit that is not trustworthy (misfit, value on a prior bound, "
+                        "rival modes, not converged); the reasons still go to stderr")
     return p
+
+
+FIRMWARE_TARGETS = ("klipper", "marlin", "rrf")
+
+
+def check_trust(doc, force: bool) -> None:
+    """Refuse (UserError, exit 2) a fit that fit.trust calls not trustworthy, unless forced.
+
+    The verdict is recomputed from the fit itself, so fit.json files written before the
+    verdict existed are judged too; the chi-square threshold the fit was run with is kept."""
+    from fit.trust import CHI2_NU_MAX, assess
+
+    chi2_max = (doc.get("trust") or {}).get("checks", {}).get("chi2_nu_max", CHI2_NU_MAX)
+    v = assess(doc, chi2_max=chi2_max)
+    if v.trustworthy:
+        return
+    why = v.problems[0] + (f" (and {len(v.problems) - 1} more problem(s))" if len(v.problems) > 1 else "")
+    if not force:
+        raise UserError(f"not exporting: this fit is not trustworthy: {why}; {v.advice} "
+                        "(--force exports it anyway)")
+    for line in v.lines():
+        print(f"calib export: {line}", file=sys.stderr)
+
+
+def firmware_warning(doc, target: str) -> str | None:
+    """One line when the printer profile says its firmware ignores the PA command."""
+    prof = doc.get("profile") or {}
+    if target in FIRMWARE_TARGETS and prof.get("firmware_pressure_advance", True) is False:
+        return (f"the printer profile '{prof.get('name', '?')}' says its firmware ignores the "
+                f"pressure-advance command, so this line will change nothing on that printer; the "
+                f"slicer-side route is KISSlicer VE (`calib export FIT --to kisslicer`), which the "
+                f"slicer applies in the G-code itself")
+    return None
 
 
 def pa_value(doc) -> float:
@@ -101,8 +140,10 @@ def run(args) -> int:
     from fit.result import load_fit_json
 
     doc = load_fit_json(args.fit)
-    if not doc.get("converged", False):
-        print("calib export: warning: this fit did not converge; the value may be unreliable")
+    check_trust(doc, args.force)
+    warn = firmware_warning(doc, args.to)
+    if warn:
+        print(f"calib export: warning: {warn}", file=sys.stderr)
     if not args.profile:
         print(snippet(doc, args.to))
         return 0

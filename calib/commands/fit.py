@@ -43,6 +43,9 @@ def add_parser(sub):
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--out", default="fit.json", help="output fit.json (default fit.json)")
     p.add_argument("--plots", metavar="DIR", help="write width/residual and corner plots here")
+    p.add_argument("--chi2-max", type=float, default=None, metavar="X",
+                   help="reduced chi-square above which the fit is called a misfit and export "
+                        "refuses its values (default 2.0, see fit/trust.py)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -62,13 +65,17 @@ def data_pairs(args) -> list[tuple[str, str]]:
 
 
 def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=None, ar1=True,
-            max_steps=20000, max_time_s=None, seed=0, progress=True, map_only=False):
+            max_steps=20000, max_time_s=None, seed=0, progress=True, map_only=False,
+            chi2_max=None):
     """Load, fit and return (FitResult or MapResult, JointProblem). Shared with `calib batch`."""
     from fit.data import FitData
     from fit.derived import derived_values
     from fit.likelihood import NoiseOptions
     from fit.priors import load_priors_file
     from fit.sampler import fit_map, fit_mcmc, make_problem
+    from fit.trust import CHI2_NU_MAX
+
+    chi2_max = CHI2_NU_MAX if chi2_max is None else chi2_max
 
     extra = ()
     if effects:
@@ -78,7 +85,7 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     overrides = load_priors_file(priors) if priors else None
     noise = NoiseOptions(ar1=ar1, student_nu=student_nu)
     problem = make_problem(model_spec, data, noise, overrides, extra)
-    m = fit_map(problem, seed=seed)
+    m = fit_map(problem, seed=seed, global_search=True)
     if map_only:
         return m, problem
     res = fit_mcmc(problem, map_result=m, max_steps=max_steps, max_time_s=max_time_s, seed=seed,
@@ -91,6 +98,9 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     res.derived = derived_values(res.param_names, res.samples, res.profile,
                                  advance_fn=adv[0] if adv else None,
                                  v_max_mm_s=adv[1] if adv else None)
+    from fit.trust import assess
+
+    res.trust = assess(res.to_json(), chi2_max=chi2_max).to_json()
     return res, problem
 
 
@@ -110,7 +120,7 @@ def run(args) -> int:
     res, problem = run_fit(pairs, args.model, priors=args.priors, effects=args.effects,
                            student_nu=args.student_t, ar1=not args.no_ar1,
                            max_steps=args.max_steps, max_time_s=args.max_time, seed=args.seed,
-                           progress=not args.quiet, map_only=args.map_only)
+                           progress=not args.quiet, map_only=args.map_only, chi2_max=args.chi2_max)
     if args.map_only:
         import json
         from calib.fileio import atomic_write_text
@@ -120,6 +130,11 @@ def run(args) -> int:
         return 0
     res.save(args.out)
     print(summary_text(res))
+    verdict = res.trust
+    if verdict.get("trustworthy"):
+        print(verdict_text(verdict))
+    else:   # to stderr too: a redirected stdout must not hide it
+        print(verdict_text(verdict), file=sys.stderr)
     if args.plots:
         from fit.plots import plot_fit
         for f in plot_fit(res, problem, args.plots):
@@ -144,8 +159,15 @@ def summary_text(res) -> str:
                  f"ensembles, max tau {max(d['tau_steps'].values()):.1f}, acceptance "
                  f"{d['acceptance_fraction']:.2f}, max R-hat {max(d['rhat'].values()):.4f}, "
                  f"{'converged' if res.converged else 'NOT CONVERGED'}")
+    for i, m in enumerate(res.map.modes[1:4], start=2):
+        phys = ", ".join(f"{n} {v:.4g}" for n, v in m["values"].items() if not n.startswith("noise."))
+        lines.append(f"mode {i}: {phys}  (BIC {m['bic'] - res.map.modes[0]['bic']:+.1f} vs the best)")
     fw = res.derived.get("firmware")
-    if fw:
+    if fw and not res.trust.get("trustworthy", True):
+        pa = res.derived["pressure_advance_s"]
+        lines.append(f"pressure advance {pa['median']:.4f} s: NOT TRUSTWORTHY, no firmware line "
+                     "(see the fit quality below)")
+    elif fw:
         pa = res.derived["pressure_advance_s"]
         lines.append(f"pressure advance {pa['median']:.4f} s (95 % {pa['ci95'][0]:.4f}-{pa['ci95'][1]:.4f}):"
                      f"  {fw['klipper']}  |  {fw['marlin']}  |  {fw['rrf']}")
@@ -165,3 +187,9 @@ def summary_text(res) -> str:
         lines.append(f"Kalico {kind} (0-{kd['v_max_mm_s']:.2f} mm/s filament, rms "
                      f"{kd['rms_mm']['median'] * 1000:.1f} um): " + ", ".join(parts))
     return "\n".join(lines)
+
+
+def verdict_text(verdict: dict) -> str:
+    from fit.trust import Verdict
+
+    return "\n".join(Verdict(**verdict).lines())

@@ -1,0 +1,156 @@
+"""Is a fitted value safe to paste into a printer? The verdict in plain words.
+
+A credible interval is only as good as the model it comes from: a model that misses an
+effect gives a narrow interval around a wrong value (the README quick path: truth
+pa+thermal+backpressure, ``pa`` alone gave tau 1.20 s [1.16, 1.25] against a truth of
+0.80 s, chi2_nu 99). :func:`assess` reads a fit (``fit.json`` as a dict) and returns a
+:class:`Verdict`: *problems* make the fit **not trustworthy** (``calib export`` then
+refuses without ``--force``), *cautions* are worth reading but do not block.
+
+Problems
+- ``not converged``: the sampler stopped on a cap (fit/sampler.py).
+- ``misfit``: chi2_nu = sum (r_i / width_sd_i)^2 / (n - k_model) > ``CHI2_NU_MAX`` (2.0).
+  chi2_nu uses the measurement's own sd, not the fitted extra noise: the extra noise and
+  the AR(1) correlation absorb a missing effect in ln L, so only chi2_nu shows it. A
+  well-specified model on our scans gives 0.9-1.1 (measurement sd coverage 68-75 %,
+  README); 2.0 leaves room for a measurement sd that is 40 % too small before an honest
+  fit is called a misfit. A misspecified model on the same scans gave 8-2800.
+- ``at a bound``: the 95 % interval of a physical parameter reaches within
+  ``BOUND_FRACTION`` (2 %) of the prior range (in log units for positive parameters) of
+  a bound that is a range limit, not the "effect absent" value 0: the data want a value
+  the model does not allow, so the reported one is the bound, not a measurement.
+- ``modes disagree``: the global search (fit/modes.py) found another optimum whose BIC
+  is within ``MODE_DELTA_BIC`` (10, "very strong" on the Kass & Raftery 1995 scale) of the
+  best and whose physical parameters lie outside the best mode's 95 % interval: two
+  different printers explain the scan about equally well.
+
+Cautions
+- PSIS-LOO Pareto k > 0.7 on more than 1 % of the samples (Vehtari et al. 2017): a few
+  samples drive the fit (blobs, mis-registered track ends); check the QA overlay.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+CHI2_NU_MAX = 2.0
+BOUND_FRACTION = 0.02
+MODE_DELTA_BIC = 10.0
+PARETO_K_BAD = 0.7
+PARETO_K_SHARE = 0.01
+
+
+@dataclass
+class Verdict:
+    """trustworthy: no problems. problems/cautions: one plain sentence each."""
+
+    trustworthy: bool
+    problems: list[str] = field(default_factory=list)
+    cautions: list[str] = field(default_factory=list)
+    advice: str = ""
+    checks: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    def lines(self) -> list[str]:
+        head = ("fit quality: OK, the values can be used" if self.trustworthy else
+                "fit quality: NOT TRUSTWORTHY, do not paste these values into the printer")
+        out = [head] + [f"  - {p}" for p in self.problems] + [f"  - caution: {c}" for c in self.cautions]
+        if self.advice and not self.trustworthy:
+            out.append(f"  what to do: {self.advice}")
+        return out
+
+
+def _is_noise(name: str) -> bool:
+    return name.startswith("noise.")
+
+
+def _bound_problem(name: str, p: dict, prior: dict) -> str | None:
+    lo, hi = float(prior.get("lower", -math.inf)), float(prior.get("upper", math.inf))
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        return None
+    a, b = map(float, p.get("ci95", (math.nan, math.nan)))
+    use_log = lo > 0
+    f = (lambda x: math.log(max(x, 1e-300))) if use_log else (lambda x: x)
+    span = f(hi) - f(lo)
+    tol = BOUND_FRACTION * span
+    if lo != 0.0 and f(a) - f(lo) < tol:
+        return (f"{name} sits on the lower end of its allowed range ({lo:g}): 95 % interval "
+                f"[{a:.4g}, {b:.4g}]; the data want a value the model does not allow")
+    if hi != 0.0 and f(hi) - f(b) < tol:
+        return (f"{name} sits on the upper end of its allowed range ({hi:g}): 95 % interval "
+                f"[{a:.4g}, {b:.4g}]; the data want a value the model does not allow")
+    return None
+
+
+def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
+    """The verdict on one fit (the dict of ``fit.json`` or ``FitResult.to_json()``)."""
+    problems: list[str] = []
+    cautions: list[str] = []
+    info = doc.get("information", {})
+    diag = doc.get("diagnostics", {})
+    params = doc.get("params", {})
+    priors = doc.get("priors", {})
+    chi2 = float(info.get("chi2_nu", math.nan))
+    checks = {"chi2_nu": chi2, "chi2_nu_max": chi2_max, "converged": bool(doc.get("converged"))}
+
+    if not doc.get("converged", False):
+        problems.append("the sampler did not converge (" + str(diag.get("warning", "capped")).replace(
+            "NOT CONVERGED: ", "") + ")")
+    if not (chi2 <= chi2_max):
+        problems.append(f"the model does not fit the scan: reduced chi-square {chi2:.3g} > {chi2_max:g} "
+                        f"(residual RMS {1000 * float(info.get('rms_mm', math.nan)):.1f} um); an effect "
+                        f"the model lacks is pulling the values, and the intervals are too narrow")
+    at_bound = []
+    for name, p in params.items():
+        if _is_noise(name) or name not in priors:
+            continue
+        msg = _bound_problem(name, p, priors[name])
+        if msg:
+            problems.append(msg)
+            at_bound.append(name)
+    checks["at_bound"] = at_bound
+
+    modes = (doc.get("map") or {}).get("modes") or []
+    rivals = []
+    if len(modes) > 1:
+        best = modes[0]
+        for m in modes[1:]:
+            dbic = float(m["bic"]) - float(best["bic"])
+            if dbic >= MODE_DELTA_BIC:
+                continue
+            apart = [n for n, v in m["values"].items()
+                     if not _is_noise(n) and n in params
+                     and not (params[n]["ci95"][0] <= v <= params[n]["ci95"][1])]
+            if apart:
+                rivals.append({"delta_bic": dbic, "values": {n: m["values"][n] for n in apart}})
+        for r in rivals:
+            vals = ", ".join(f"{n} = {v:.4g}" for n, v in r["values"].items())
+            problems.append(f"a second explanation fits almost as well ({vals}; BIC only "
+                            f"{r['delta_bic']:.1f} worse): the scan cannot tell them apart")
+    checks["rival_modes"] = rivals
+    checks["n_modes"] = len(modes)
+
+    loo = info.get("loo") or {}
+    k_bad, n_obs = loo.get("n_pareto_k_gt_0.7"), info.get("n_obs")
+    if k_bad is not None and n_obs:
+        checks["pareto_k_share"] = k_bad / n_obs
+        if k_bad / n_obs > PARETO_K_SHARE:
+            cautions.append(f"{k_bad} of {n_obs} samples have PSIS-LOO Pareto k > {PARETO_K_BAD} "
+                            "(a few samples drive the fit); look at the QA overlay for blobs or "
+                            "mis-registered track ends")
+
+    if any("does not fit" in p for p in problems):
+        advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
+                  "missing effect, then fit the model it names")
+    elif at_bound:
+        advice = ("the test did not constrain these values; print a pattern that does (other "
+                  "speeds or widths) or widen the prior with --priors if the range is too narrow")
+    elif rivals:
+        advice = "print a second pattern (another speed or step length) and fit both jointly with --data"
+    elif problems:
+        advice = "raise --max-steps or --max-time and fit again"
+    else:
+        advice = ""
+    return Verdict(not problems, problems, cautions, advice, checks)
