@@ -97,10 +97,12 @@ def run_wizard(inp=sys.stdin, out=sys.stdout, port: str | None = None, baud: int
     r.step("measuring", ["measure", scan, "--manifest", man, "-o", widths, "--overlay", folder / "qa.png"])
     r.say(f"   check {folder / 'qa.png'}: the green outline must sit on your printed lines")
 
-    model = ask.ask("model to fit", "pa")
+    model = ask.ask("model to fit ('auto' adds the effects the scan supports)", "auto")
     fit_json = folder / "fit.json"
     r.step("fitting", ["fit", widths, "--manifest", man, "--model", model, "-o", fit_json], ok_codes=(0, 3))
-    if ask.yes("look for a missing physical effect (diagnose)?", True):
+    if model == "auto":
+        model = json.loads(fit_json.read_text()).get("model", model)
+    elif ask.yes("look for a missing physical effect (diagnose)?", True):
         diag = folder / "diagnose.json"
         r.step("diagnosing", ["diagnose", widths, "--manifest", man, "--model", model, "-o", diag])
         cands = json.loads(diag.read_text()).get("candidates", [])

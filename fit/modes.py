@@ -6,9 +6,9 @@ BIC, and which one a fit returned depended on ``--seed``. Here a differential ev
 (Storn & Price 1997; scipy's implementation, vectorised: one population = one batched
 physics call) runs over z (log theta for positive parameters, so decades are searched
 evenly) with a *fixed* seed, so the starting points, and therefore the MAP, do not depend
-on the user's ``--seed``. The final population is split into distinct basins (points
-further apart than ``min_sep_z`` in the physical coordinates); the best point of each of
-the ``max_starts`` best basins is polished by the caller.
+on the user's ``--seed``. A space-filling screen of the physical parameters adds one start
+per distinct basin (:func:`global_starts`), so rival modes are found and reported, not
+only the best one; the caller polishes every start.
 
 Two optima are the same mode when their physical parameters (noise parameters excluded)
 agree within ``same_z`` in z; modes are reported best first with their BIC, so a user can
@@ -31,39 +31,59 @@ def physical_mask(param_names) -> np.ndarray:
     return np.array([not n.startswith((SIGMA_NAME, CORR_NAME)) for n in param_names])
 
 
-def global_starts(neg_logpost_z, zlo, zhi, phys, *, popsize: int = 12, maxiter: int = 40,
-                  max_starts: int = 4, min_sep_z: float = 0.5) -> list[np.ndarray]:
-    """Starting points (in z) for the local polish, one per distinct basin, best first.
+def global_starts(neg_logpost_z, zlo, zhi, phys, z_default, *, popsize: int = 12,
+                  maxiter: int = 40, max_starts: int = 5, min_sep_z: float = 0.5,
+                  n_screen: int | None = None) -> list[np.ndarray]:
+    """Starting points (in z) for the local polish: the differential evolution's best,
+    then one point per distinct basin of a space-filling screen, best first.
 
     neg_logpost_z(z) takes (S, d) and returns (S,) (inf outside the support). ``phys``
-    marks the physical (non-noise) coordinates that define a basin."""
+    marks the physical (non-noise) coordinates; ``z_default`` the start of the others.
+
+    DE converges: its final population sits in one basin, so it finds the best mode but
+    not the rivals. The screen (a scrambled Sobol sequence over the physical coordinates,
+    noise parameters at their defaults, one batched call) finds the rivals: a screen point
+    is a basin when no better screen point lies within ``min_sep_z`` (in z, per
+    coordinate, at most its log-range) of it."""
+    from scipy.stats import qmc
+
     d = len(zlo)
 
-    def f(zT):                                # scipy's vectorised call: zT (d, S)
-        v = neg_logpost_z(np.asarray(zT).T)
-        return np.where(np.isfinite(v), v, 1e300)
+    def f(z):
+        v = neg_logpost_z(np.atleast_2d(z))
+        return np.where(np.isfinite(v), v, np.inf)
 
     with warnings.catch_warnings(), np.errstate(all="ignore"):
         warnings.simplefilter("ignore")
-        res = differential_evolution(f, list(zip(zlo, zhi)), vectorized=True, updating="deferred",
+        res = differential_evolution(lambda zT: np.minimum(f(np.asarray(zT).T), 1e300),
+                                     list(zip(zlo, zhi)), vectorized=True, updating="deferred",
                                      popsize=popsize, maxiter=maxiter, tol=0.0, polish=False,
                                      init="sobol", seed=SEARCH_SEED)
-    pop, en = np.asarray(res.population), np.asarray(res.population_energies)
+    starts = [np.asarray(res.x, dtype=float)]
+    k = int(np.sum(phys))
+    if k == 0:
+        return starts
+    n = n_screen or max(64, 32 * k)
+    m = int(np.ceil(np.log2(n)))
+    u = qmc.Sobol(k, scramble=True, seed=SEARCH_SEED).random_base2(m)
+    pts = np.tile(np.asarray(z_default, dtype=float), (len(u), 1))
+    pts[:, phys] = zlo[phys] + u * (zhi[phys] - zlo[phys])
+    en = f(pts)
+    scale = np.minimum(np.maximum(zhi - zlo, 1e-12), 1.0)[phys]
+    P = pts[:, phys] / scale
     order = np.argsort(en, kind="stable")
-    starts: list[np.ndarray] = []
-    span = np.maximum(zhi - zlo, 1e-12)
-    for i in order:
-        if not en[i] < 1e299:
+    basins = []
+    for r, i in enumerate(order):
+        if not np.isfinite(en[i]):
             break
-        z = pop[i]
-        # basins are told apart in units of the log-range of each coordinate, capped so a
-        # parameter with a narrow range still separates at min_sep_z in z
-        if all(np.max(np.abs(z - s)[phys] / np.minimum(span[phys], 1.0)) > min_sep_z for s in starts):
-            starts.append(z.copy())
+        better = P[order[:r]]
+        if r == 0 or np.min(np.max(np.abs(better - P[i]), axis=1)) > min_sep_z:
+            basins.append(i)
+    for i in basins:
         if len(starts) >= max_starts:
             break
-    if d and not starts:
-        starts.append(np.asarray(res.x, dtype=float))
+        if all(np.max(np.abs((pts[i] - s_)[phys]) / scale) > min_sep_z for s_ in starts):
+            starts.append(pts[i].copy())
     return starts
 
 

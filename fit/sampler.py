@@ -40,6 +40,9 @@ from fit.modes import distinct_modes, global_starts, physical_mask
 from fit.result import FitResult, MapResult, ParamSummary
 
 EXIT_NOT_CONVERGED = 3
+#: printer keys the physics reads (mm): seed 000's tau = 32 D^2 L l / d^4 VE and the nozzle area
+PHYSICS_KEYS = ("filament_diameter_mm", "nozzle_diameter_mm", "nozzle_land_length_mm",
+                "bowden_length_mm")
 
 
 # -- problem construction ---------------------------------------------------------
@@ -54,14 +57,18 @@ def make_problem(model, data, noise: NoiseOptions | None = None, prior_overrides
     scans = getattr(data, "scans", None) or [data]
     if isinstance(model, str):
         from fit.model import build_model
-        from patterns.profile import profile_from_dict
 
         models = []
         for sc in scans:
-            try:
-                prof = profile_from_dict(sc.manifest.printer)
-            except Exception as exc:  # a malformed printer block is the user's file
-                raise UserError(f"{sc.name}: the manifest's printer profile is unusable: {exc}") from None
+            # The physics needs the nozzle and filament geometry, not the motion limits a
+            # full profile also holds (manifests from `calib plan` and the shipped examples
+            # carry only the geometry).
+            prof = dict(sc.manifest.printer or {})
+            bad = [k for k in PHYSICS_KEYS
+                   if not isinstance(prof.get(k), (int, float)) or not prof[k] >= 0]
+            if bad:
+                raise UserError(f"{sc.name}: the manifest's printer block lacks a usable "
+                                f"{bad[0]} (mm); regenerate the manifest with --printer")
             models.append(build_model(model, prof, extra_effects=tuple(extra_effects)))
         for sc, m in zip(scans, models):
             if sc.ctx is None:
@@ -153,8 +160,9 @@ def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
     d = problem.ndim
     phys = physical_mask(problem.param_names)
     if global_search:
+        z_def = np.clip(tr.to_z(np.clip(starts[0], lo, hi)), zlo, zhi)
         starts += [tr.to_theta(z) for z in global_starts(
-            lambda Z: -_logpost_z(problem, tr, Z), zlo, zhi, phys)]
+            lambda Z: -_logpost_z(problem, tr, Z), zlo, zhi, phys, z_def)]
     else:
         for _ in range(max(0, n_starts - 1)):
             th = np.array([p.sample(rng, 1)[0] for p in problem.priors])

@@ -174,3 +174,39 @@ def test_same_seed_same_chains_at_any_thread_count(scan):
     assert one.shape == two.shape and np.array_equal(one, two)
     assert np.array_equal(two, again)
     assert not np.array_equal(two, other)
+
+
+def test_misfit_is_flagged_and_the_right_model_is_not(tmp_path, capsys):
+    """Truth pa+thermal (strong slow ooze); `pa` alone returns a narrow interval around a
+    biased tau. Its fit must say NOT TRUSTWORTHY with the reduced chi-square, print no
+    firmware line, and export must refuse; pa+thermal on the same scan passes."""
+    from fit.model import build_model
+    from fit.virtual import print_virtual
+    from patterns import spiral_step
+    from patterns.profile import load_profile
+
+    prof = load_profile("direct_drive")
+    _, man = spiral_step.generate(prof, speeds_mm_s=(20.0,), n_steps=4, step_s=(3.0,))
+    man = _track_only(man)
+    mp = man.save(tmp_path / "t.manifest.json")
+    truth = {"pa.tau_s": 0.05, "thermal.a": 0.3, "thermal.tau_s": 3.0}
+    t = print_virtual(man, build_model("pa+thermal", prof), truth).table
+    t.width_sd_mm[:] = 0.005
+    t.width_mm = t.width_mm + 0.005 * np.random.default_rng(3).standard_normal(len(t))
+    w = t.save(tmp_path / "t.csv")
+    docs = {}
+    for model in ("pa", "pa+thermal"):
+        out = tmp_path / f"{model}.json"
+        assert main(["fit", str(w), "--manifest", str(mp), "--model", model, "--quiet",
+                     "-o", str(out)]) == 0
+        docs[model] = (json.loads(out.read_text()), capsys.readouterr())
+    bad, cap = docs["pa"]
+    assert bad["trust"]["trustworthy"] is False and bad["information"]["chi2_nu"] > 2
+    assert "does not fit" in cap.err and "diagnose" in cap.err
+    assert "M900" not in cap.out and "NOT TRUSTWORTHY" in cap.out
+    assert main(["export", str(tmp_path / "pa.json"), "--to", "klipper"]) == 2
+    good, cap = docs["pa+thermal"]
+    assert good["trust"]["trustworthy"] is True, good["trust"]["problems"]
+    assert "fit quality: OK" in cap.out and "M900 K" in cap.out
+    lo, hi = good["params"]["pa.tau_s"]["ci95"]
+    assert lo < 0.05 < hi

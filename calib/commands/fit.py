@@ -29,7 +29,10 @@ def add_parser(sub):
     p.add_argument("--manifest", help="manifest JSON the widths were measured against")
     p.add_argument("--data", nargs=2, action="append", metavar=("WIDTHS", "MANIFEST"), default=[],
                    help="a widths/manifest pair; repeat for a joint fit")
-    p.add_argument("--model", default="pa", help="effects joined by '+' (default: pa)")
+    p.add_argument("--model", default="pa",
+                   help="effects joined by '+' (default: pa), or 'auto': start from pa and add "
+                        "the effect `calib diagnose` names while it lowers BIC by >= 10 and the "
+                        "reduced chi-square falls; the chain is printed")
     p.add_argument("--priors", help="TOML file overriding parameter priors (see fit/priors.py)")
     p.add_argument("--effects", help="Python file with user Effect classes")
     p.add_argument("--student-t", type=float, default=None, metavar="NU",
@@ -81,17 +84,24 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     if effects:
         from fit.effects import load_effects_file
         extra = tuple(load_effects_file(effects))
+    auto = None
+    if model_spec == "auto":
+        auto = choose_model(pairs, effects, extra, seed=seed, progress=progress, chi2_max=chi2_max)
+        model_spec = auto.model
     data = FitData.load(pairs)
     overrides = load_priors_file(priors) if priors else None
     noise = NoiseOptions(ar1=ar1, student_nu=student_nu)
     problem = make_problem(model_spec, data, noise, overrides, extra)
     m = fit_map(problem, seed=seed, global_search=True)
     if map_only:
+        m.model = model_spec
         return m, problem
     res = fit_mcmc(problem, map_result=m, max_steps=max_steps, max_time_s=max_time_s, seed=seed,
                    progress=progress)
     res.model = model_spec
     res.map.model = model_spec
+    if auto is not None:
+        res.diagnostics["model_search"] = auto.to_json()
     from fit.derived import problem_advance
 
     adv = problem_advance(problem)      # Kalico match for models with a nonlinear term
@@ -102,6 +112,31 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
 
     res.trust = assess(res.to_json(), chi2_max=chi2_max).to_json()
     return res, problem
+
+
+def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=None):
+    """``--model auto`` (fit/auto.py) on the one scan of ``pairs``; prints the chain."""
+    from fit.auto import auto_model
+    from fit.compare import observe
+    from fit.effects import REGISTRY
+    from fit.model import build_model
+    from fit.trust import CHI2_NU_MAX
+    from measure.table import WidthTable
+    from patterns.manifest import Manifest
+
+    if len(pairs) != 1:
+        raise UserError("--model auto chooses the model on one scan; fit that scan with --model "
+                        "auto first, then the joint fit with the model it chose")
+    widths, manifest_path = pairs[0]
+    manifest = Manifest.load(manifest_path)
+    scan = observe(manifest, WidthTable.load(widths))
+    res = auto_model(scan, lambda s: build_model(s, manifest.printer, extra_effects=extra),
+                     list(REGISTRY), [c.name for c in extra], seed=seed, progress=progress,
+                     chi2_max=CHI2_NU_MAX if chi2_max is None else chi2_max)
+    print("model search (--model auto):")
+    for line in res.lines():
+        print(f"  {line}")
+    return res
 
 
 def run(args) -> int:

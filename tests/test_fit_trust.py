@@ -1,0 +1,122 @@
+"""Global mode search (fit/modes.py) and the trust verdict (fit/trust.py).
+
+Two-mode posterior: width = 0.4 + 0.05 x L^2 + c z L with L = ln(tau / 0.1 s). Data made
+at L = +1.5 (tau = 0.448 s). With c = 0 the data cannot tell L = +1.5 from L = -1.5 (tau =
+0.0223 s): two equally good modes, three decades of prior between them. With c > 0 the
+mirror mode is a worse local optimum.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fit.likelihood import JointProblem, NoiseOptions
+from fit.params import Param
+from fit.sampler import fit_map, fit_mcmc
+from fit.trust import CHI2_NU_MAX, assess
+from test_discover_compare import _scan
+
+L_TRUE = 1.5
+TAU_TRUE = 0.1 * math.exp(L_TRUE)
+TAU_MIRROR = 0.1 * math.exp(-L_TRUE)
+
+
+class MirrorModel:
+    spec = "pa"
+
+    def __init__(self, c):
+        self.c = c
+        self.params = (Param("pa.tau_s", "s", 0.2, 0.005, 5.0, "loguniform"),)
+        self.param_names = ["pa.tau_s"]
+        self.bounds = np.array([[0.005, 5.0]])
+
+    def default_theta(self):
+        return np.array([0.2])
+
+    def log_prior(self, theta):
+        return np.zeros(np.atleast_2d(theta).shape[0])
+
+    def predict(self, ctx, theta):
+        L = np.log(np.atleast_2d(theta)[:, :1] / 0.1)
+        x, z = ctx
+        return 0.4 + 0.05 * x[None, :] * L ** 2 + self.c * z[None, :] * L
+
+
+def _problem(c, seed=0):
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0, 4, 200)
+    z = np.where(np.arange(200) % 2 == 0, 1.0, -1.0) * 0.3
+    y = 0.4 + 0.05 * x * L_TRUE ** 2 + c * z * L_TRUE + 0.002 * rng.standard_normal(200)
+    sc = _scan(x, y, 0.002)
+    sc.ctx = (x, z)
+    return JointProblem([sc], [MirrorModel(c)], NoiseOptions(ar1=False))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_global_search_finds_both_modes_whatever_the_seed(seed):
+    m = fit_map(_problem(0.0), seed=seed, global_search=True)
+    taus = sorted(md["values"]["pa.tau_s"] for md in m.modes)
+    assert len(taus) == 2
+    assert taus[0] == pytest.approx(TAU_MIRROR, rel=0.01) and taus[1] == pytest.approx(TAU_TRUE, rel=0.01)
+    assert abs(m.modes[1]["bic"] - m.modes[0]["bic"]) < 1.0
+
+
+def test_the_better_mode_wins_and_the_map_does_not_depend_on_the_seed():
+    maps = [fit_map(_problem(0.004), seed=s, global_search=True) for s in range(4)]
+    assert all(m.values["pa.tau_s"] == pytest.approx(TAU_TRUE, rel=0.01) for m in maps)
+    assert len({round(m.values["pa.tau_s"], 9) for m in maps}) == 1
+    # the mirror is still listed, clearly worse
+    mirror = [md for md in maps[0].modes if md["values"]["pa.tau_s"] < 0.1]
+    assert mirror and mirror[0]["bic"] - maps[0].modes[0]["bic"] > 50
+
+
+def test_rival_modes_make_the_fit_not_trustworthy():
+    pb = _problem(0.0)
+    m = fit_map(pb, global_search=True)
+    r = fit_mcmc(pb, map_result=m, progress=False, max_steps=3000, n_loo_draws=50)
+    doc = r.to_json()
+    v = assess(doc)
+    assert not v.trustworthy and v.checks["rival_modes"]
+    assert any("second explanation" in p for p in v.problems)
+    # the same scan with the mirror ruled out by the data is fine
+    pb = _problem(0.004)
+    r = fit_mcmc(pb, map_result=fit_map(pb, global_search=True), progress=False, max_steps=3000,
+                 n_loo_draws=50)
+    ok = assess(r.to_json())
+    assert ok.trustworthy, ok.problems
+
+
+def _doc(chi2=1.0, tau=(0.3, 0.31, 0.32), a=(0.0, 0.01, 0.03), converged=True, modes=()):
+    def p(lo, med, hi):
+        return {"median": med, "ci95": [lo, hi]}
+    return {"converged": converged, "diagnostics": {},
+            "information": {"chi2_nu": chi2, "rms_mm": 0.01, "n_obs": 1000,
+                            "loo": {"n_pareto_k_gt_0.7": 0}},
+            "params": {"pa.tau_s": p(*tau), "thermal.a": p(*a),
+                       "noise.sigma_extra_mm": p(1e-4, 1e-4, 2e-4)},
+            "priors": {"pa.tau_s": {"kind": "loguniform", "lower": 0.005, "upper": 5.0},
+                       "thermal.a": {"kind": "uniform", "lower": 0.0, "upper": 1.0},
+                       "noise.sigma_extra_mm": {"kind": "loguniform", "lower": 1e-4, "upper": 1.0}},
+            "map": {"modes": list(modes)}}
+
+
+def test_verdict_rules():
+    assert assess(_doc()).trustworthy          # an absent effect (a = 0) and noise at its floor are fine
+    v = assess(_doc(chi2=3.0))
+    assert not v.trustworthy and "does not fit" in v.problems[0] and "diagnose" in v.advice
+    assert assess(_doc(chi2=3.0), chi2_max=5.0).trustworthy
+    assert CHI2_NU_MAX == 2.0
+    v = assess(_doc(tau=(4.6, 4.9, 4.99)))     # the data want tau beyond the 5 s range limit
+    assert not v.trustworthy and v.checks["at_bound"] == ["pa.tau_s"]
+    v = assess(_doc(tau=(0.005, 0.0051, 0.0053)))
+    assert v.checks["at_bound"] == ["pa.tau_s"]
+    assert not assess(_doc(converged=False)).trustworthy
+    best = {"values": {"pa.tau_s": 0.31}, "bic": 100.0}
+    far_worse = {"values": {"pa.tau_s": 0.02}, "bic": 160.0}
+    close = {"values": {"pa.tau_s": 0.02}, "bic": 104.0}
+    inside = {"values": {"pa.tau_s": 0.305}, "bic": 101.0}
+    assert assess(_doc(modes=[best, far_worse])).trustworthy
+    assert assess(_doc(modes=[best, inside])).trustworthy
+    assert not assess(_doc(modes=[best, close])).trustworthy
