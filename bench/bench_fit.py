@@ -82,8 +82,10 @@ def track_only(man, pad_s: float = 1.0):
 
 
 def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=6, step_s=(3.0,),
-              trim=True, widths_mm=(0.35, 0.8)):
-    """(model, ScanData, manifest) of a noisy virtual spiral-step print."""
+              trim=True, widths_mm=(0.35, 0.8), noise=None):
+    """(model, ScanData, manifest) of a noisy virtual spiral-step print (``noise`` as
+    :data:`NOISE`, the default)."""
+    noise = noise or NOISE
     from fit.data import scan_from_table
     from fit.model import build_model
     from fit.virtual import print_virtual
@@ -97,15 +99,15 @@ def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=6, step_
         man = track_only(man)
     model = build_model(spec, prof)
     t = print_virtual(man, model, values).table
-    t.width_sd_mm[:] = NOISE["sd_mm"]
+    t.width_sd_mm[:] = noise["sd_mm"]
     sc = scan_from_table(t, man, f"seed{seed}")
     rng = np.random.default_rng(seed)
-    phi = np.exp(-sc.gap_mm / NOISE["corr_len_mm"])         # 0 at a track start
+    phi = np.exp(-sc.gap_mm / noise["corr_len_mm"])         # 0 at a track start
     e = np.empty(sc.n_valid)
     for i in range(sc.n_valid):
         u = rng.standard_normal()
         e[i] = u if i == 0 or phi[i] == 0 else phi[i] * e[i - 1] + math.sqrt(1 - phi[i] ** 2) * u
-    s_tot = math.hypot(NOISE["sd_mm"], NOISE["sigma_extra_mm"])
+    s_tot = math.hypot(noise["sd_mm"], noise["sigma_extra_mm"])
     t.width_mm[sc.order] = t.width_mm[sc.order] + s_tot * e
     sc.y_mm = t.width_mm[sc.order].copy()
     return model, sc, man

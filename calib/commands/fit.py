@@ -108,8 +108,9 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     res.derived = derived_values(res.param_names, res.samples, res.profile,
                                  advance_fn=adv[0] if adv else None,
                                  v_max_mm_s=adv[1] if adv else None)
-    from fit.trust import assess
+    from fit.trust import assess, residual_structure
 
+    res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
     res.trust = assess(res.to_json(), chi2_max=chi2_max).to_json()
     return res, problem
 
