@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 
 from calib import __version__
@@ -46,8 +47,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 
+def _glue_negative_values(argv: list[str]) -> list[str]:
+    """``--opt -70,0=...`` -> ``--opt=-70,0=...``. argparse takes a token that starts with
+    '-' for an option unless it is a plain number, so point hints on a centre-origin bed
+    ("-70,0=704,1478;...") were refused; no option of ours starts with '-' and a digit."""
+    out: list[str] = []
+    for a in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and re.match(r"-\.?\d", a):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv=None) -> int:
     parser = build_parser()
+    argv = _glue_negative_values(list(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()

@@ -68,3 +68,5 @@ def test_bad_inputs_exit_2_with_one_line_and_no_csv(scan, capsys):
     assert "is above --max-residual-mm 1e-05" in msg
     assert "manifest" in _run_bad(d, "scan.png", capsys, manifest="missing.manifest.json")
     assert "at least 4 are needed" in _run_bad(d, "scan.png", capsys, "--points", "1,2=3,4")
+    # a hint that starts with '-' (centre-origin beds) reaches the measurement, not argparse
+    assert "at least 4 are needed" in _run_bad(d, "scan.png", capsys, "--points", "-70,0=704,1478")
