@@ -99,7 +99,7 @@ def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, ca
 
     from patterns.profile import load_profile
 
-    load_profile(printer)  # a bad printer or truth is one clear line before any work starts
+    prof = load_profile(printer)  # a bad printer or truth is one clear line before any work starts
     truth = Path(truth) if truth else _data_dir() / "truths" / "bowden.toml"
     spec_true, values_true, _ = load_truth(truth)
     out = Path(out_dir)
@@ -173,6 +173,9 @@ def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, ca
 
     last = history[-1]["file"]
     r.step("export the pressure advance for Klipper", ["export", last, "--to", "klipper"])
+    if prof.bowden_length_mm > 0:   # VE needs the Bowden length (seed 000)
+        r.step("the same fit as KISSlicer VE (applied by the slicer, for firmware without PA)",
+               ["export", last, "--to", "kisslicer"])
     r.step("the report", ["report", "--widths", widths, "--manifest", man, "--scan", scan,
                           "--overlay", qa, "--fit", last, "--models", base_model, history[-1]["model"],
                           "-o", out / "report.html"])

@@ -348,6 +348,7 @@ def fit_mcmc(model, data=None, *, map_result: MapResult | None = None, n_walkers
                     history[-1].append(float(np.max(rhat)))
                     if np.all(rhat < rhat_max):
                         stop_reason = "converged"
+                        bar.set_postfix(tau=f"{np.max(tau):.1f}", rhat=f"{np.max(rhat):.4f}")
                         break
                 bar.set_postfix(tau=f"{np.max(tau):.1f}", need=int(tau_factor * np.max(tau)),
                                 rhat=f"{np.max(rhat):.3f}")
