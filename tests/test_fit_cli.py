@@ -210,3 +210,35 @@ def test_misfit_is_flagged_and_the_right_model_is_not(tmp_path, capsys):
     assert "fit quality: OK" in cap.out and "M900 K" in cap.out
     lo, hi = good["params"]["pa.tau_s"]["ci95"]
     assert lo < 0.05 < hi
+
+
+def _trusted_fit_json(path, profile):
+    doc = {"schema": "calib.fit/1", "model": "pa", "converged": True,
+           "information": {"chi2_nu": 1.0, "rms_mm": 0.01, "n_obs": 500, "loo": {}},
+           "params": {"pa.tau_s": {"median": 0.6, "ci95": [0.59, 0.61]}},
+           "priors": {"pa.tau_s": {"kind": "loguniform", "lower": 0.005, "upper": 5.0}},
+           "derived": {"kisslicer_ve_us": {"median": 1.7404}, "pressure_advance_s": {"median": 0.6}},
+           "profile": profile, "samples": []}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_kisslicer_export_uses_kisslicer2_key_and_states_the_geometry(tmp_path, capsys):
+    prof = {"name": "adventurer3", "bowden_length_mm": 200.0, "nozzle_land_length_mm": 0.6,
+            "nozzle_diameter_mm": 0.4, "filament_diameter_mm": 1.75, "firmware_pressure_advance": False}
+    fit = _trusted_fit_json(tmp_path / "fit.json", prof)
+    assert main(["export", str(fit), "--to", "kisslicer"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == "matl_viscosity_over_elasticity_us=1.740\n"
+    assert "drive_len_1" in cap.err and "200.0 mm" in cap.err
+    # a material ini with the key written by an older calib: replaced, the rest kept
+    ini = tmp_path / "PLA.ini"
+    ini.write_text("matl_name=PLA\nviscoelasticity_us=0.500\npreload_factor=1\n")
+    assert main(["export", str(fit), "--to", "kisslicer", "--profile", str(ini)]) == 0
+    assert ini.read_text() == "matl_name=PLA\nmatl_viscosity_over_elasticity_us=1.740\npreload_factor=1\n"
+    # this printer's firmware ignores M900: the line is printed, with a warning on stderr
+    capsys.readouterr()
+    assert main(["export", str(fit), "--to", "marlin"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == "M900 K0.6000\n" and "ignores the pressure-advance command" in cap.err
+    assert "--to kisslicer" in cap.err

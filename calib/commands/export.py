@@ -8,7 +8,8 @@ timestamped backup (calib.fileio.backup), with an atomic write:
   orca     filament JSON: "pressure_advance": ["K"] (string array) and
            "enable_pressure_advance": ["1"]
   marlin/rrf  a G-code/config file: the M900 / M572 line replaced or appended
-  kisslicer   .ini: ``viscoelasticity_us=`` (KISSlicer VE, seed 000)
+  kisslicer   material .ini: ``matl_viscosity_over_elasticity_us=`` (KISSlicer 2's VE key,
+              seed 000; a ``viscoelasticity_us=`` line from older calib versions is replaced)
 """
 from __future__ import annotations
 
@@ -41,6 +42,17 @@ def add_parser(sub):
 
 
 FIRMWARE_TARGETS = ("klipper", "marlin", "rrf")
+KISS_VE_KEY = "matl_viscosity_over_elasticity_us"
+
+
+def kisslicer_geometry_note(doc) -> str:
+    """VE = tau d^4 / (32 D^2 L l) (seed 000) holds only for the geometry it was computed
+    with; KISSlicer computes tau back from its own printer keys, so they must match."""
+    p = doc.get("profile") or {}
+    return (f"VE was computed for Bowden L = {p.get('bowden_length_mm')} mm, nozzle land "
+            f"l = {p.get('nozzle_land_length_mm')} mm, nozzle d = {p.get('nozzle_diameter_mm')} mm, "
+            f"filament D = {p.get('filament_diameter_mm')} mm; set KISSlicer's drive_len_1, "
+            f"nozzle_len_1 and nozzle_dia_1 to the same values or the delay it applies is wrong")
 
 
 def check_trust(doc, force: bool) -> None:
@@ -92,7 +104,7 @@ def ve_value(doc) -> float:
 
 def snippet(doc, target: str) -> str:
     if target == "kisslicer":
-        return f"viscoelasticity_us={ve_value(doc):.3f}"
+        return f"{KISS_VE_KEY}={ve_value(doc):.3f}"
     k = f"{pa_value(doc):.4f}"
     return {"klipper": f"[extruder]\npressure_advance: {k}",
             "marlin": f"M900 K{k}",
@@ -127,7 +139,7 @@ def update_text(text: str, doc, target: str) -> str:
             lines.insert(sec + 1, f"pressure_advance: {k}")
         return "\n".join(lines) + "\n"
     if target == "kisslicer":
-        line, pat = snippet(doc, target), r"^\s*viscoelasticity_us\s*=.*$"
+        line, pat = snippet(doc, target), rf"^\s*(?:{KISS_VE_KEY}|viscoelasticity_us)\s*=.*$"
     elif target == "marlin":
         line, pat = snippet(doc, target), r"^\s*M900\b.*$"
     else:
@@ -144,6 +156,8 @@ def run(args) -> int:
     warn = firmware_warning(doc, args.to)
     if warn:
         print(f"calib export: warning: {warn}", file=sys.stderr)
+    if args.to == "kisslicer":
+        print(f"calib export: note: {kisslicer_geometry_note(doc)}", file=sys.stderr)
     if not args.profile:
         print(snippet(doc, args.to))
         return 0
