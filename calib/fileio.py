@@ -62,6 +62,50 @@ def backup(path) -> Path | None:
     return dest
 
 
+def replace_user_file(path, data: bytes) -> Path | None:
+    """Replace the contents of a user's file (a profile) safely; returns the backup's path,
+    or None when ``data`` equals what is there (nothing is written, no backup).
+
+    A symlink is followed: its target is updated and the link stays a link (printer.cfg is
+    often a link into a config repository). Mode and, where allowed, owner and group are
+    kept; the new bytes are fsynced before the rename and the folder after it, so a power
+    cut leaves either the old file or the new one. The backup sits next to the target."""
+    link = Path(path)
+    target = Path(os.path.realpath(link))
+    old = target.read_bytes()
+    if old == data:
+        return None
+    st = target.stat()
+    bak = backup(target)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, st.st_mode & 0o7777)
+        try:
+            os.chown(tmp, st.st_uid, st.st_gid)
+        except (PermissionError, AttributeError):   # not root: the file becomes the user's own
+            pass
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    try:
+        dfd = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
+    return bak
+
+
 def json_default(o):
     """``json.dumps(default=...)`` for numpy scalars/arrays and paths."""
     import numpy as np

@@ -2,9 +2,13 @@
 
 A fit that fit/trust.py calls not trustworthy (misfit, a value on a prior bound, rival
 modes, not converged) is refused with one line and exit 2 unless ``--force``; warnings go
-to stderr, never into the snippet. Without --profile: print the snippet. With --profile: update the file in place, after a
-timestamped backup (calib.fileio.backup), with an atomic write:
-  klipper  printer.cfg: ``pressure_advance:`` in the [extruder] section (added if missing)
+to stderr, never into the snippet. Without --profile: print the snippet. With --profile:
+update the file in place (calib.fileio.replace_user_file: timestamped backup, symlinks
+followed, mode/owner/line endings kept, fsync, no write when nothing changes); a file of
+another kind than the target edits is refused with one line:
+  klipper  printer.cfg: the ``pressure_advance:`` Klipper actually reads (last one, in
+           includes too), else added under the last [extruder] header; never in the
+           SAVE_CONFIG block (calib/klipper_cfg.py); --section for extruder1, ...
   orca     filament JSON: "pressure_advance": ["K"] (string array) and
            "enable_pressure_advance": ["1"]
   marlin/rrf  a G-code/config file: the M900 / M572 line replaced or appended
@@ -21,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from calib.errors import UserError
-from calib.fileio import atomic_write_text, backup
 
 TARGETS = ("klipper", "marlin", "rrf", "orca", "kisslicer")
 
@@ -35,6 +38,9 @@ def add_parser(sub):
     p.add_argument("fit", help="fit.json from `calib fit`")
     p.add_argument("--to", required=True, choices=TARGETS, help="target firmware or slicer")
     p.add_argument("--profile", help="file to update in place (printer.cfg, filament .json, ...)")
+    p.add_argument("--section", default="extruder",
+                   help="Klipper: the extruder section to set (extruder1, ... for a tool changer; "
+                        "default extruder)")
     p.add_argument("--force", action="store_true",
                    help="export a fit that is not trustworthy (misfit, value on a prior bound, "
                         "rival modes, not converged); the reasons still go to stderr")
@@ -102,18 +108,49 @@ def ve_value(doc) -> float:
     return float(d["median"])
 
 
-def snippet(doc, target: str) -> str:
+def snippet(doc, target: str, section: str = "extruder") -> str:
     if target == "kisslicer":
         return f"{KISS_VE_KEY}={ve_value(doc):.3f}"
     k = f"{pa_value(doc):.4f}"
-    return {"klipper": f"[extruder]\npressure_advance: {k}",
+    return {"klipper": f"[{section}]\npressure_advance: {k}",
             "marlin": f"M900 K{k}",
             "rrf": f"M572 D0 S{k}",
             "orca": json.dumps({"enable_pressure_advance": ["1"], "pressure_advance": [k]})}[target]
 
 
+def profile_kind(text: str) -> str:
+    """What a profile file is: 'json', 'klipper' (has [section] headers or a SAVE_CONFIG
+    block), 'ini' (key = value lines) or 'gcode'."""
+    body = text.lstrip("\ufeff \t\r\n")
+    if body.startswith("{"):
+        return "json"
+    lines = [ln.strip() for ln in text.splitlines()]
+    if any(re.match(r"\[[^\]]+\]", ln) for ln in lines) or "#*# <---" in text:
+        return "klipper"
+    if any(re.match(r"^[GMT]\d+\b", ln, re.IGNORECASE) for ln in lines):
+        return "gcode"
+    if any(re.match(r"^[A-Za-z_][A-Za-z0-9_]*\s*=", ln) for ln in lines):
+        return "ini"
+    return "gcode"
+
+
+#: the file kinds each target may edit, and what to use instead
+ACCEPTS = {"klipper": ("klipper",), "orca": ("json",), "kisslicer": ("ini",),
+           "marlin": ("gcode",), "rrf": ("gcode",)}
+USE_INSTEAD = {"json": "--to orca", "klipper": "--to klipper", "ini": "--to kisslicer",
+               "gcode": "--to marlin or --to rrf"}
+
+
+def check_kind(path, text: str, target: str) -> None:
+    kind = profile_kind(text)
+    if kind not in ACCEPTS[target]:
+        raise UserError(f"{path} looks like a {kind} file, which --to {target} does not edit "
+                        f"(use {USE_INSTEAD[kind]}); nothing was changed")
+
+
 def update_text(text: str, doc, target: str) -> str:
-    """The profile text with the setting replaced (or added)."""
+    """The profile text with the setting replaced (or added); not for Klipper configs
+    (:func:`calib.klipper_cfg.set_option` follows includes and SAVE_CONFIG)."""
     if target == "orca":
         try:
             prof = json.loads(text)
@@ -124,20 +161,6 @@ def update_text(text: str, doc, target: str) -> str:
         prof["pressure_advance"] = [f"{pa_value(doc):.4f}"]
         prof["enable_pressure_advance"] = ["1"]
         return json.dumps(prof, indent=4) + "\n"
-    if target == "klipper":
-        k = f"{pa_value(doc):.4f}"
-        lines = text.splitlines()
-        sec = next((i for i, l in enumerate(lines) if l.strip().lower() == "[extruder]"), None)
-        if sec is None:
-            return text.rstrip("\n") + f"\n\n[extruder]\npressure_advance: {k}\n"
-        end = next((i for i in range(sec + 1, len(lines)) if lines[i].lstrip().startswith("[")), len(lines))
-        for i in range(sec + 1, end):
-            if re.match(r"\s*pressure_advance\s*[:=]", lines[i]):
-                lines[i] = f"pressure_advance: {k}"
-                break
-        else:
-            lines.insert(sec + 1, f"pressure_advance: {k}")
-        return "\n".join(lines) + "\n"
     if target == "kisslicer":
         line, pat = snippet(doc, target), rf"^\s*(?:{KISS_VE_KEY}|viscoelasticity_us)\s*=.*$"
     elif target == "marlin":
@@ -149,6 +172,7 @@ def update_text(text: str, doc, target: str) -> str:
 
 
 def run(args) -> int:
+    from calib.fileio import replace_user_file
     from fit.result import load_fit_json
 
     doc = load_fit_json(args.fit)
@@ -159,17 +183,29 @@ def run(args) -> int:
     if args.to == "kisslicer":
         print(f"calib export: note: {kisslicer_geometry_note(doc)}", file=sys.stderr)
     if not args.profile:
-        print(snippet(doc, args.to))
+        print(snippet(doc, args.to, args.section))
         return 0
     path = Path(args.profile)
     if not path.exists():
         raise UserError(f"profile {path} does not exist")
     try:
-        text = path.read_text()
+        from calib.klipper_cfg import read_exact
+
+        text = read_exact(path)      # line endings kept
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"cannot read profile {path}: {exc}") from None
-    new = update_text(text, doc, args.to)
-    bak = backup(path)
-    atomic_write_text(path, new)
-    print(f"updated {path} (backup {bak})")
+    check_kind(path, text, args.to)
+    if args.to == "klipper":
+        from calib.klipper_cfg import set_option
+
+        changes = set_option(path, args.section, "pressure_advance", f"{pa_value(doc):.4f}")
+    else:
+        new = update_text(text, doc, args.to)
+        changes = {path: new} if new != text else {}
+    if not changes:
+        print(f"{path} already has this value; nothing written")
+        return 0
+    for f, new in changes.items():
+        bak = replace_user_file(f, new.encode("utf-8"))
+        print(f"updated {f} (backup {bak})")
     return 0

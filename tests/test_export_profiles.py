@@ -1,0 +1,160 @@
+"""`calib export --profile` on real-world printer.cfg layouts, loaded back by Klipper's rules.
+
+``klipper_reads`` follows klippy/configfile.py read_main_config step by step: CRLF -> LF,
+split at the SAVE_CONFIG header, refuse the autosave block if anything in it lacks the
+'#*# ' prefix or the regular part contains one ("Can't read autosave"), drop text after
+'#', expand [include] in place, RawConfigParser(strict=False, inline_comment_prefixes=
+(';', '#')) fed chunk by chunk, autosave options that the regular part also sets dropped.
+"""
+from __future__ import annotations
+
+import configparser
+import glob
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from calib.cli import main
+
+AUTOSAVE = ("\n#*# <---------------------- SAVE_CONFIG ---------------------->\n"
+            "#*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n#*#\n")
+SAVE_BLOCK = AUTOSAVE + "#*# [stepper_z]\n#*# position_endstop = 0.512\n#*#\n#*# [extruder]\n#*# pid_kp = 22.1\n"
+
+
+def klipper_reads(main_cfg: Path) -> configparser.RawConfigParser:
+    data = main_cfg.read_text().replace("\r\n", "\n")
+    pos = data.find(AUTOSAVE)
+    regular, auto = (data[:pos], data[pos + len(AUTOSAVE):].strip()) if pos >= 0 else (data, "")
+    assert "\n#*# " not in regular, "Klipper: autosave state corrupted"
+    for line in auto.split("\n") if auto else []:
+        assert line.startswith("#*#") and (len(line) < 4 or line.startswith("#*# ")), \
+            "Klipper: modifications after header"
+    auto = "\n".join(line[4:] for line in auto.split("\n")) if auto else ""
+
+    def parse(text, filename, cp):
+        buf = []
+        for line in text.split("\n"):
+            if "#" in line:
+                line = line[:line.find("#")]
+            mo = configparser.RawConfigParser.SECTCRE.match(line)
+            header = mo and mo.group("header")
+            if header and header.startswith("include "):
+                cp.read_string("\n".join(buf))
+                buf = []
+                for inc in sorted(glob.glob(os.path.join(os.path.dirname(filename), header[8:].strip()))):
+                    parse(Path(inc).read_text().replace("\r\n", "\n"), inc, cp)
+            else:
+                buf.append(line)
+        cp.read_string("\n".join(buf))
+
+    def new():
+        return configparser.RawConfigParser(strict=False, inline_comment_prefixes=(";", "#"))
+
+    reg = new()
+    parse(regular, str(main_cfg), reg)
+    if auto:
+        a = new()
+        a.read_string(auto)
+        for s in a.sections():
+            if not reg.has_section(s):
+                reg.add_section(s)
+            for o in a.options(s):
+                if not reg.has_option(s, o):
+                    reg.set(s, o, a.get(s, o))
+    return reg
+
+
+@pytest.fixture
+def fit_json(tmp_path):
+    doc = {"schema": "calib.fit/1", "model": "pa", "converged": True,
+           "information": {"chi2_nu": 1.0, "rms_mm": 0.01, "n_obs": 500, "loo": {}},
+           "params": {"pa.tau_s": {"median": 0.0412, "ci95": [0.04, 0.042]}},
+           "priors": {"pa.tau_s": {"kind": "loguniform", "lower": 0.005, "upper": 5.0}},
+           "derived": {"pressure_advance_s": {"median": 0.0412}},
+           "profile": {"name": "direct_drive"}, "samples": []}
+    p = tmp_path / "fit.json"
+    p.write_text(json.dumps(doc))
+    return str(p)
+
+
+def _export(fit, cfg, *extra):
+    return main(["export", fit, "--to", "klipper", "--profile", str(cfg), *extra])
+
+
+def test_extruder_in_an_include_with_a_save_config_block(tmp_path, fit_json):
+    (tmp_path / "hw").mkdir()
+    inc = tmp_path / "hw" / "extruder.cfg"
+    inc.write_text("[extruder]   # E3D V6\nstep_pin: PB3\nrotation_distance: 22.6\n"
+                   "pressure_advance: 0.5  ; old\n")
+    cfg = tmp_path / "printer.cfg"
+    main_text = "[include hw/*.cfg]\n[printer]\nkinematics: cartesian\n" + SAVE_BLOCK
+    cfg.write_text(main_text)
+    assert _export(fit_json, cfg) == 0
+    assert cfg.read_text() == main_text                   # main file and SAVE_CONFIG untouched
+    k = klipper_reads(cfg)
+    assert k.getfloat("extruder", "pressure_advance") == 0.0412
+    assert k.get("stepper_z", "position_endstop") == "0.512"   # autosave still read
+    assert "; old" in inc.read_text() and "# E3D V6" in inc.read_text()
+    assert len(list((tmp_path / "hw").glob("extruder.cfg.bak-*"))) == 1
+
+
+def test_commented_header_gets_the_option_before_the_save_config_block(tmp_path, fit_json):
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("[printer]\nkinematics: corexy\n\n[extruder]   # E3D\nstep_pin: PB3\n\n"
+                   "[heater_bed]\nheater_pin: PA1\n" + SAVE_BLOCK)
+    assert _export(fit_json, cfg) == 0
+    k = klipper_reads(cfg)
+    assert k.getfloat("extruder", "pressure_advance") == 0.0412
+    assert k.get("extruder", "step_pin") == "PB3" and k.get("stepper_z", "position_endstop") == "0.512"
+    assert cfg.read_text().index("pressure_advance") < cfg.read_text().index("#*# <---")
+
+
+def test_the_value_klipper_reads_is_the_one_edited(tmp_path, fit_json):
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("[extruder]\nstep_pin: PB3\npressure_advance: 0.1\n\n[fan]\npin: PA8\n\n"
+                   "[extruder]\npressure_advance = 0.2\n")
+    assert _export(fit_json, cfg) == 0
+    text = cfg.read_text()
+    assert "pressure_advance: 0.1\n" in text and "pressure_advance = 0.0412\n" in text
+    assert klipper_reads(cfg).getfloat("extruder", "pressure_advance") == 0.0412
+
+
+def test_second_extruder_crlf_symlink_mode_and_no_write_when_unchanged(tmp_path, fit_json, capsys):
+    real = tmp_path / "config-repo" / "printer.cfg"
+    real.parent.mkdir()
+    real.write_bytes(b"[extruder]\r\nstep_pin: PB3\r\n\r\n[extruder1]\r\nstep_pin: PB4\r\n")
+    os.chmod(real, 0o640)
+    link = tmp_path / "printer.cfg"
+    link.symlink_to(real)
+    assert _export(fit_json, link, "--section", "extruder1") == 0
+    assert link.is_symlink() and os.readlink(link) == str(real)
+    data = real.read_bytes()
+    assert b"\r\npressure_advance: 0.0412\r\n" in data and b"\n" not in data.replace(b"\r\n", b"")
+    assert (real.stat().st_mode & 0o777) == 0o640
+    k = klipper_reads(link)
+    assert k.getfloat("extruder1", "pressure_advance") == 0.0412
+    assert not k.has_option("extruder", "pressure_advance")
+    before = sorted(real.parent.iterdir())
+    capsys.readouterr()
+    assert _export(fit_json, link, "--section", "extruder1") == 0
+    assert "nothing written" in capsys.readouterr().out
+    assert sorted(real.parent.iterdir()) == before       # no second backup
+    assert _export(fit_json, link, "--section", "extruder2") == 2
+    assert "found: extruder, extruder1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("target,content,hint", [
+    ("klipper", '{"name": "PLA", "pressure_advance": ["0.02"]}', "--to orca"),
+    ("marlin", "[extruder]\nstep_pin: PB3\n", "--to klipper"),
+    ("orca", "[extruder]\nstep_pin: PB3\n", "--to klipper"),
+    ("klipper", "G28\nM900 K0\n", "--to marlin"),
+])
+def test_a_file_of_another_kind_is_refused_untouched(tmp_path, fit_json, capsys, target, content, hint):
+    f = tmp_path / "profile.x"
+    f.write_text(content)
+    assert main(["export", fit_json, "--to", target, "--profile", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert hint in err and err.count("\n") == 1
+    assert f.read_text() == content and not list(tmp_path.glob("profile.x.bak-*"))
