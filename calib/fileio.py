@@ -6,6 +6,7 @@ copy of a user's file before it is changed (profiles).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import tempfile
@@ -13,24 +14,31 @@ import time
 from pathlib import Path
 
 
-def atomic_write(path, writer, binary: bool = True) -> Path:
-    """Call ``writer(fileobj)`` on a temp file next to ``path``, then rename onto ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+@contextlib.contextmanager
+def _temp_beside(path: Path):
+    """(fd, tmp path) of a new file next to ``path``; removed again if the block fails."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"encoding": "utf-8"})) as f:
-            writer(f)
-        # mkstemp makes 0600 files; give the result the mode a plain open() would (or keep
-        # the mode of the file being replaced) so users' outputs stay readable by others.
-        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_umask())
-        os.replace(tmp, path)
+        yield fd, tmp
     except BaseException:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
         raise
+
+
+def atomic_write(path, writer, binary: bool = True) -> Path:
+    """Call ``writer(fileobj)`` on a temp file next to ``path``, then rename onto ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with _temp_beside(path) as (fd, tmp):
+        with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"encoding": "utf-8"})) as f:
+            writer(f)
+        # mkstemp makes 0600 files; give the result the mode a plain open() would (or keep
+        # the mode of the file being replaced) so users' outputs stay readable by others.
+        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_umask())
+        os.replace(tmp, path)
     return path
 
 
@@ -77,8 +85,7 @@ def replace_user_file(path, data: bytes) -> Path | None:
         return None
     st = target.stat()
     bak = backup(target)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
+    with _temp_beside(target) as (fd, tmp):
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -89,12 +96,6 @@ def replace_user_file(path, data: bytes) -> Path | None:
         except (PermissionError, AttributeError):   # not root: the file becomes the user's own
             pass
         os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
     try:
         dfd = os.open(target.parent, os.O_RDONLY)
         try:
