@@ -158,3 +158,22 @@ def test_a_file_of_another_kind_is_refused_untouched(tmp_path, fit_json, capsys,
     err = capsys.readouterr().err
     assert hint in err and err.count("\n") == 1
     assert f.read_text() == content and not list(tmp_path.glob("profile.x.bak-*"))
+
+
+def test_marlin_and_rrf_lines_of_other_tools_are_left_alone(tmp_path, fit_json, capsys):
+    start = tmp_path / "start.gcode"
+    start.write_bytes(b"M104 S210\r\nM900 K0.02 L0 ; tool 0\r\nM900 T1 K0.08\r\nG28\r\n")
+    assert main(["export", fit_json, "--to", "marlin", "--profile", str(start), "--tool", "1"]) == 0
+    assert start.read_bytes() == b"M104 S210\r\nM900 K0.02 L0 ; tool 0\r\nM900 T1 K0.0412\r\nG28\r\n"
+    assert main(["export", fit_json, "--to", "marlin", "--profile", str(start)]) == 0
+    assert b"M900 K0.0412 L0 ; tool 0\r\n" in start.read_bytes()
+    rrf = tmp_path / "config.g"
+    rrf.write_text("M572 D0:1 S0.05 ; both drives\nM572 D2 S0.2\n")
+    assert main(["export", fit_json, "--to", "rrf", "--profile", str(rrf), "--tool", "2"]) == 0
+    assert rrf.read_text() == "M572 D0:1 S0.05 ; both drives\nM572 D2 S0.0412\n"
+    assert main(["export", fit_json, "--to", "rrf", "--profile", str(rrf), "--tool", "3"]) == 0
+    assert rrf.read_text().endswith("M572 D2 S0.0412\nM572 D3 S0.0412\n")
+    capsys.readouterr()
+    assert main(["export", fit_json, "--to", "marlin", "--tool", "1"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == "M900 T1 K0.0412\n" and "M500" in cap.err

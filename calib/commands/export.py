@@ -41,6 +41,9 @@ def add_parser(sub):
     p.add_argument("--section", default="extruder",
                    help="Klipper: the extruder section to set (extruder1, ... for a tool changer; "
                         "default extruder)")
+    p.add_argument("--tool", type=int, default=0, metavar="N",
+                   help="Marlin/RRF: the extruder (M900 T<N>) or drive (M572 D<N>) to set; other "
+                        "tools' lines are left alone (default 0)")
     p.add_argument("--force", action="store_true",
                    help="export a fit that is not trustworthy (misfit, value on a prior bound, "
                         "rival modes, not converged); the reasons still go to stderr")
@@ -108,13 +111,13 @@ def ve_value(doc) -> float:
     return float(d["median"])
 
 
-def snippet(doc, target: str, section: str = "extruder") -> str:
+def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
     if target == "kisslicer":
         return f"{KISS_VE_KEY}={ve_value(doc):.3f}"
     k = f"{pa_value(doc):.4f}"
     return {"klipper": f"[{section}]\npressure_advance: {k}",
-            "marlin": f"M900 K{k}",
-            "rrf": f"M572 D0 S{k}",
+            "marlin": tool_line("marlin", k, tool),
+            "rrf": tool_line("rrf", k, tool),
             "orca": json.dumps({"enable_pressure_advance": ["1"], "pressure_advance": [k]})}[target]
 
 
@@ -148,7 +151,7 @@ def check_kind(path, text: str, target: str) -> None:
                         f"(use {USE_INSTEAD[kind]}); nothing was changed")
 
 
-def update_text(text: str, doc, target: str) -> str:
+def update_text(text: str, doc, target: str, tool: int = 0) -> str:
     """The profile text with the setting replaced (or added); not for Klipper configs
     (:func:`calib.klipper_cfg.set_option` follows includes and SAVE_CONFIG)."""
     if target == "orca":
@@ -163,12 +166,50 @@ def update_text(text: str, doc, target: str) -> str:
         return json.dumps(prof, indent=4) + "\n"
     if target == "kisslicer":
         line, pat = snippet(doc, target), rf"^\s*(?:{KISS_VE_KEY}|viscoelasticity_us)\s*=.*$"
-    elif target == "marlin":
-        line, pat = snippet(doc, target), r"^\s*M900\b.*$"
-    else:
-        line, pat = snippet(doc, target), r"^\s*M572\b.*$"
-    new, n = re.subn(pat, line, text, flags=re.MULTILINE)
-    return new if n else text.rstrip("\n") + "\n" + line + "\n"
+        new, n = re.subn(pat, line, text, flags=re.MULTILINE)
+        return new if n else text.rstrip("\n") + "\n" + line + "\n"
+    return set_pa_gcode(text, target, f"{pa_value(doc):.4f}", tool)
+
+
+def _tool_matches(target: str, code: str, tool: int) -> bool:
+    """Does this M900 (Marlin, T<tool>, none = tool 0) / M572 (RRF, D<d>[:<d>...], none =
+    drive 0) line set the advance of ``tool``?"""
+    if target == "marlin":
+        m = re.search(r"\bT(\d+)", code, re.IGNORECASE)
+        return (int(m.group(1)) if m else 0) == tool
+    m = re.search(r"\bD([\d:]+)", code, re.IGNORECASE)
+    return tool in ([int(x) for x in m.group(1).split(":") if x] if m else [0])
+
+
+def set_pa_gcode(text: str, target: str, k: str, tool: int = 0) -> str:
+    """Set the advance of ``tool`` in every M900 (K) / M572 (S) line that addresses it,
+    leaving other tools' lines, other parameters and comments alone; append a line when
+    none does. Line endings are kept."""
+    cmd, letter = ("M900", "K") if target == "marlin" else ("M572", "S")
+    eol = "\r\n" if "\r\n" in text else "\n"
+    lines = text.replace("\r\n", "\n").split("\n")
+    hit = False
+    for i, ln in enumerate(lines):
+        code, sep, comment = ln.partition(";")
+        if not re.match(rf"\s*{cmd}\b", code, re.IGNORECASE) or not _tool_matches(target, code, tool):
+            continue
+        hit = True
+        if re.search(rf"\b{letter}[-+0-9.]+", code, re.IGNORECASE):
+            code = re.sub(rf"\b{letter}[-+0-9.]+", f"{letter}{k}", code, flags=re.IGNORECASE)
+        else:
+            code = code.rstrip() + f" {letter}{k}" + (" " if sep else "")
+        lines[i] = code + sep + comment
+    if not hit:
+        while lines and lines[-1] == "":
+            lines.pop()
+        lines += [tool_line(target, k, tool), ""]
+    return eol.join(lines)
+
+
+def tool_line(target: str, k: str, tool: int = 0) -> str:
+    if target == "marlin":
+        return f"M900 T{tool} K{k}" if tool else f"M900 K{k}"
+    return f"M572 D{tool} S{k}"
 
 
 def run(args) -> int:
@@ -183,7 +224,10 @@ def run(args) -> int:
     if args.to == "kisslicer":
         print(f"calib export: note: {kisslicer_geometry_note(doc)}", file=sys.stderr)
     if not args.profile:
-        print(snippet(doc, args.to, args.section))
+        print(snippet(doc, args.to, args.section, args.tool))
+        if args.to == "marlin":
+            print("calib export: note: send M500 after it to keep the value over a reboot "
+                  "(Marlin stores it in EEPROM; needs LIN_ADVANCE in the firmware)", file=sys.stderr)
         return 0
     path = Path(args.profile)
     if not path.exists():
@@ -200,7 +244,7 @@ def run(args) -> int:
 
         changes = set_option(path, args.section, "pressure_advance", f"{pa_value(doc):.4f}")
     else:
-        new = update_text(text, doc, args.to)
+        new = update_text(text, doc, args.to, args.tool)
         changes = {path: new} if new != text else {}
     if not changes:
         print(f"{path} already has this value; nothing written")
