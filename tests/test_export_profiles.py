@@ -177,3 +177,27 @@ def test_marlin_and_rrf_lines_of_other_tools_are_left_alone(tmp_path, fit_json, 
     assert main(["export", fit_json, "--to", "marlin", "--tool", "1"]) == 0
     cap = capsys.readouterr()
     assert cap.out == "M900 T1 K0.0412\n" and "M500" in cap.err
+
+
+def test_orca_filament_presets_only_arrays_kept_adaptive_pa_off(tmp_path, fit_json, capsys):
+    preset = {"name": "My PLA", "from": "User", "inherits": "Generic PLA", "filament_type": ["PLA"],
+              "pressure_advance": ["0.02", "0.03"], "enable_pressure_advance": ["0", "0"],
+              "adaptive_pressure_advance": ["1", "1"], "filament_settings_id": ["My PLA"]}
+    f = tmp_path / "My PLA.json"
+    f.write_text(json.dumps(preset, indent=2))
+    assert main(["export", fit_json, "--to", "orca", "--profile", str(f), "--tool", "1"]) == 0
+    out = json.loads(f.read_text())
+    # Orca's types: string arrays, one entry per extruder; the other extruder untouched
+    assert out["pressure_advance"] == ["0.02", "0.0412"]
+    assert out["enable_pressure_advance"] == ["0", "1"]
+    assert out["adaptive_pressure_advance"] == ["1", "0"]
+    assert all(isinstance(v, str) for key in ("pressure_advance", "enable_pressure_advance")
+               for v in out[key])
+    assert f.read_text().startswith('{\n  "name"')                # indent kept
+    assert "adaptive pressure advance was on" in capsys.readouterr().err
+    for bad, msg in (({"type": "machine", "name": "X1C"}, "not an Orca filament preset"),
+                     ({"type": "filament", "from": "system", "pressure_advance": ["0.02"]}, "system preset")):
+        g = tmp_path / "bad.json"
+        g.write_text(json.dumps(bad))
+        assert main(["export", fit_json, "--to", "orca", "--profile", str(g)]) == 2
+        assert msg in capsys.readouterr().err and json.loads(g.read_text()) == bad

@@ -155,20 +155,64 @@ def update_text(text: str, doc, target: str, tool: int = 0) -> str:
     """The profile text with the setting replaced (or added); not for Klipper configs
     (:func:`calib.klipper_cfg.set_option` follows includes and SAVE_CONFIG)."""
     if target == "orca":
-        try:
-            prof = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise UserError(f"the Orca filament profile is not valid JSON: {exc}") from None
-        if not isinstance(prof, dict):
-            raise UserError("the Orca filament profile must be a JSON object")
-        prof["pressure_advance"] = [f"{pa_value(doc):.4f}"]
-        prof["enable_pressure_advance"] = ["1"]
-        return json.dumps(prof, indent=4) + "\n"
+        return update_orca(text, pa_value(doc), tool)
     if target == "kisslicer":
         line, pat = snippet(doc, target), rf"^\s*(?:{KISS_VE_KEY}|viscoelasticity_us)\s*=.*$"
         new, n = re.subn(pat, line, text, flags=re.MULTILINE)
         return new if n else text.rstrip("\n") + "\n" + line + "\n"
     return set_pa_gcode(text, target, f"{pa_value(doc):.4f}", tool)
+
+
+ORCA_PA_MAX = 2.0      # PrintConfig.cpp: pressure_advance, coFloats, max 2
+
+
+def update_orca(text: str, k: float, tool: int = 0) -> str:
+    """An OrcaSlicer filament preset (JSON, string arrays, one entry per extruder) with
+    pressure_advance[tool] = k and enable_pressure_advance[tool] = 1. Adaptive PA, which
+    makes Orca ignore pressure_advance, is switched off for that extruder (said on stderr).
+    Refused: not JSON, not a filament preset, a system preset (replaced on update)."""
+    try:
+        prof = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise UserError(f"the Orca filament preset is not valid JSON: {exc}") from None
+    if not isinstance(prof, dict):
+        raise UserError("the Orca filament preset must be a JSON object")
+    kind = prof.get("type")
+    if kind not in (None, "filament") or (kind is None and "pressure_advance" not in prof
+                                          and not any(key.startswith("filament_") for key in prof)):
+        raise UserError(f"this is not an Orca filament preset (type {kind!r}); pressure advance "
+                        "lives in the filament preset")
+    if str(prof.get("from", "")).lower() == "system":
+        raise UserError("this is an Orca system preset (from: system), replaced on every update; "
+                        "save it as a user preset in Orca and export into that")
+    if not 0 <= k <= ORCA_PA_MAX:
+        raise UserError(f"pressure advance {k:.4f} s is outside what Orca accepts (0-{ORCA_PA_MAX:g})")
+
+    def put(key, value):
+        cur = prof.get(key)
+        arr = [str(x) for x in cur] if isinstance(cur, list) else ([str(cur)] if cur is not None else [])
+        n = max(len(arr), len(prof.get("pressure_advance") or []) or 1, tool + 1)
+        fill = arr[-1] if arr else value
+        arr += [fill] * (n - len(arr))
+        arr[tool] = value
+        prof[key] = arr
+
+    n_ext = len(prof["pressure_advance"]) if isinstance(prof.get("pressure_advance"), list) else 1
+    if tool >= n_ext and "pressure_advance" in prof:
+        raise UserError(f"the preset holds pressure advance for {n_ext} extruder(s); --tool {tool} "
+                        "is not one of them")
+    put("pressure_advance", f"{k:.4f}")
+    put("enable_pressure_advance", "1")
+    adaptive = prof.get("adaptive_pressure_advance")
+    if isinstance(adaptive, list) and tool < len(adaptive) and str(adaptive[tool]) == "1":
+        put("adaptive_pressure_advance", "0")
+        print("calib export: note: adaptive pressure advance was on in this preset, and Orca "
+              "then ignores pressure_advance; it is now off for this extruder", file=sys.stderr)
+    m = re.search(r"\n([ \t]+)\S", text)
+    indent = m.group(1) if m else "    "
+    eol = "\r\n" if "\r\n" in text else "\n"
+    out = json.dumps(prof, indent=indent, ensure_ascii=False)
+    return out.replace("\n", eol) + eol
 
 
 def _tool_matches(target: str, code: str, tool: int) -> bool:
