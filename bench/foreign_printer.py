@@ -1,0 +1,207 @@
+"""A second virtual printer, written apart from fit/ so that discovery is scored without
+the inverse crime.
+
+Nothing here calls fit/effects.py, fit/kernels.py or fit/context.py. Shared with the
+library are only definitions: the planned timeline of the probe print (fit/hidden.py),
+the stations (patterns.manifest.sample_points) and the bead cross-section
+A = (w - h) h + pi h^2 / 4 (fit/geometry.py). What differs:
+
+- discretisation: the commanded E(t) is resampled on a uniform 1 ms grid and the state
+  is integrated by explicit midpoint (RK2) steps, where the library integrates exactly on
+  merged constant-command intervals;
+- deposition: each step's outflow volume is laid on its track at the nozzle's arc length
+  with a Gaussian footprint (sd 0.12 mm), where the library averages over a window;
+- each hidden effect has another functional form than the library's:
+
+  ==============  ==========================================  ===========================
+  foreign effect  here                                        library (fit/effects.py)
+  ==============  ==========================================  ===========================
+  thermal         gamma (shape 2) kernel: delayed ooze,       exponential kernel
+                  two cascaded lags of tau_th/2
+  nonlinear       logarithmic Preq = tau v0 ln(1 + vn/v0)     power law, tanh, 1/x
+  backpressure    sub-linear power law Kb w_r (w/w_r)^0.5     Kb w_sat tanh(w/w_sat)
+  backlash        play of width be followed by an elastic     dead band on reversal
+                  zone (first-order lag, 40 ms)
+  bed             quadratic bowl h(r) = h0 (1 + c r^2)        plane (bed_tilt)
+  gear_slip       slip grows with the filament pressure       no library form (the
+                  ve_eff = ve (1 - k P)                       example user effect is
+                                                              speed-dependent)
+  ==============  ==========================================  ===========================
+
+The family each foreign effect belongs to (what diagnose should name) is ``FAMILY``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fit.geometry import bead_width_mm, filament_area_mm2
+from measure.table import WidthTable
+from patterns.manifest import sample_points
+
+DT_S = 0.001
+FOOTPRINT_SD_MM = 0.12
+
+#: foreign effect -> its parameters (sizes comparable to fit/hidden.py's cases)
+FOREIGN = {
+    "thermal": {"a": 0.3, "tau_th_s": 8.0},
+    "nonlinear": {"v0_mm_s": 2.5},
+    "backpressure": {"kb": 0.5, "w_ref_mm": 0.6},
+    "backlash": {"be_mm": 0.8, "lag_s": 0.04},
+    "bed": {"c_per_mm2": 6e-5},
+    "gear_slip": {"k_per_mm": 0.12},
+}
+#: library effects that count as naming the foreign effect
+FAMILY = {
+    "thermal": {"thermal"},
+    "nonlinear": {"nonlinear", "bernoulli", "kalico_tanh", "kalico_recip", "offset"},
+    "backpressure": {"backpressure"},
+    "backlash": {"backlash"},
+    "bed": {"bed_tilt"},
+    "gear_slip": {"gear_slip"},
+}
+#: covariates that point at the foreign effect
+RIGHT_COVARIATES = {
+    "thermal": {"time_since_stop_s", "last_stop_duration_s"},
+    "nonlinear": {"flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"},
+    "backpressure": {"width_nominal_mm", "flow_mm3_s"},
+    "backlash": {"time_since_stop_s", "s_mm", "time_since_flow_change_s"},
+    "bed": {"x_mm", "y_mm"},
+    "gear_slip": {"flow_mm3_s", "extruder_speed_mm_s"},
+}
+
+
+@dataclass
+class ForeignCase:
+    hidden: str
+    table: WidthTable
+    manifest: object
+    noise_mm: float
+    effect_rms_mm: float
+
+
+def _uniform(tl):
+    """The timeline on a uniform DT_S grid: t, commanded E, head x, y, speed, track, s."""
+    t = np.arange(tl.t_s[0], tl.t_s[-1], DT_S)
+    e = np.interp(t, tl.t_s, tl.e_mm)
+    idx = np.clip(np.searchsorted(tl.t_s, t, side="right") - 1, 0, len(tl.t_s) - 1)
+    return (t, e, np.interp(t, tl.t_s, tl.x_mm), np.interp(t, tl.t_s, tl.y_mm),
+            np.interp(t, tl.t_s, tl.v_mm_s), tl.track[idx], np.interp(t, tl.t_s, tl.s_mm))
+
+
+def simulate(manifest, tau_s: float, hidden: str | None, p: dict | None = None,
+             height_mm: float = 0.2):
+    """Deposited cross-section A (mm^2) at every station of ``sample_points(manifest, 0.5)``
+    (and the stations), for the base linear spring ``tau_s`` plus ``hidden``."""
+    p = p or {}
+    prof = manifest.printer
+    af = filament_area_mm2(prof["filament_diameter_mm"])
+    t, e, x, y, vh, trk, s = _uniform(manifest.timeline)
+    n = len(t)
+    ve_cmd = np.gradient(e, DT_S)
+    # heights: a bowl-shaped bed for "bed", flat otherwise
+    if hidden == "bed":
+        r2 = x ** 2 + y ** 2
+        hgt = height_mm * (1.0 + p["c_per_mm2"] * r2)
+    else:
+        hgt = np.full(n, height_mm)
+
+    def outflow(P, vhead, h):
+        """Nozzle outflow vn (mm/s of filament) for the stored advance P (mm)."""
+        if P <= 0.0:
+            return 0.0
+        if hidden == "nonlinear":
+            v0 = p["v0_mm_s"]
+            return v0 * math.expm1(P / (tau_s * v0))
+        if hidden == "backpressure":
+            # P = tau vn + Kb w_r (w/w_r)^0.5, w the width of the bead this outflow lays
+            # (A = (w - h) h + pi h^2/4, w >= h; pi w h / 4 below): bisection on vn
+            lo, hi = 0.0, P / tau_s
+            c = p["kb"] * math.sqrt(p["w_ref_mm"])
+            for _ in range(30):
+                mid = 0.5 * (lo + hi)
+                area = mid * af / max(vhead, 2.0)
+                w = area / h + h * (1 - math.pi / 4) if area >= math.pi * h * h / 4 else \
+                    4 * area / (math.pi * h)
+                if tau_s * mid + c * math.sqrt(w) > P:
+                    hi = mid
+                else:
+                    lo = mid
+            return lo
+        return P / tau_s
+
+    P = 0.0
+    g = e[0]            # gear position after the play (backlash)
+    ge = e[0]           # after the elastic zone
+    x1 = x2 = 0.0       # thermal lags
+    q = np.zeros(n)     # outflow volume rate, mm^3/s
+    for k in range(n - 1):
+        if hidden == "backlash":
+            half = 0.5 * p["be_mm"]
+            g = min(max(g, e[k + 1] - half), e[k + 1] + half)
+            ge_new = ge + (g - ge) * (1.0 - math.exp(-DT_S / p["lag_s"]))
+            ve = (ge_new - ge) / DT_S
+            ge = ge_new
+        else:
+            ve = ve_cmd[k]
+        if hidden == "gear_slip":
+            ve *= max(0.0, 1.0 - p["k_per_mm"] * max(P, 0.0))
+        # explicit midpoint step of dP/dt = ve - vn
+        v1 = outflow(P, vh[k], hgt[k])
+        Pm = P + 0.5 * DT_S * (ve - v1)
+        v2 = outflow(Pm, 0.5 * (vh[k] + vh[k + 1]), hgt[k])
+        P = P + DT_S * (ve - v2)
+        vn = v2
+        if hidden == "thermal":
+            th = 0.5 * p["tau_th_s"]
+            x1 += DT_S * (vn - x1) / th
+            x2 += DT_S * (x1 - x2) / th
+            vn = max(0.0, vn + p["a"] * (x2 - vn))
+        q[k] = vn * af
+    smp = sample_points(manifest, ds_mm=0.5, margin_mm=0.5)
+    area = np.zeros(len(smp.s_mm))
+    for tid in np.unique(smp.track):
+        on = (trk == tid) & np.isfinite(s)
+        st = smp.track == tid
+        if not on.any():
+            continue
+        # volume laid per step at the nozzle's arc length, Gaussian footprint along s
+        vol = q[on] * DT_S
+        ss = s[on]
+        grid = np.arange(-1.0, ss.max() + 1.0, 0.02)
+        dep = np.histogram(ss, bins=np.append(grid, grid[-1] + 0.02), weights=vol)[0] / 0.02
+        kx = np.arange(-4 * FOOTPRINT_SD_MM, 4 * FOOTPRINT_SD_MM + 1e-9, 0.02)
+        ker = np.exp(-0.5 * (kx / FOOTPRINT_SD_MM) ** 2)
+        dep = np.convolve(dep, ker / ker.sum(), mode="same")
+        area[st] = np.interp(smp.s_mm[st], grid + 0.01, dep)
+    h_st = np.full(len(area), height_mm)
+    if hidden == "bed":
+        h_st = height_mm * (1.0 + p["c_per_mm2"] * (smp.x_mm ** 2 + smp.y_mm ** 2))
+    return area, h_st, smp
+
+
+def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01) -> ForeignCase:
+    """The probe print (fit/hidden.py) on the foreign printer with ``hidden``, widths with
+    ``noise_mm`` of white measurement noise; the same stop blobs flagged as make_case."""
+    from fit.hidden import probe_manifest
+
+    rng = np.random.default_rng(seed)
+    man = probe_manifest()
+    tau = 0.35 * float(np.exp(0.2 * rng.standard_normal()))
+    p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN[hidden].items()}
+    a1, h1, smp = simulate(man, tau, hidden, p)
+    a0, h0, _ = simulate(man, tau, None)
+    w1 = np.asarray(bead_width_mm(np.maximum(a1, 0.0), h1))
+    w0 = np.asarray(bead_width_mm(np.maximum(a0, 0.0), h0))
+    stop_at = np.array([man.track(int(k)).params.get("stop_s_mm", np.nan) for k in smp.track])
+    blob = np.abs(smp.s_mm - stop_at) <= 1.0
+    valid = np.isfinite(w1) & ~blob & (w1 > 0.05)
+    meas = w1 + noise_mm * rng.standard_normal(len(w1))
+    flag = np.where(blob, "blob", np.where(valid, "", "missing")).astype(object)
+    table = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                       width_mm=np.where(valid, meas, 0.0), width_sd_mm=np.full(len(w1), noise_mm),
+                       valid=valid, flag=flag)
+    rms = float(np.sqrt(np.mean((w1[valid] - w0[valid]) ** 2)))
+    return ForeignCase(hidden, table, man, noise_mm, rms)
