@@ -67,7 +67,13 @@ def run_wizard(inp=sys.stdin, out=sys.stdout, port: str | None = None, baud: int
     r.step("preview", ["preview", gcode, "-o", folder / f"{pattern}.preview.png"])
     r.say(f"   open {folder / (pattern + '.preview.png')} to see what will be printed")
 
-    if port or ask.yes("send it to the printer over USB now?", False):
+    send = bool(port) or ask.yes("send it to the printer over USB now?", False)
+    if send and not ask.yes(f"open {folder / (pattern + '.preview.png')}: is that what you expect, "
+                            "the bed clear and the nozzle clean? start printing now (it heats "
+                            "and homes)?", False):
+        r.say("   not sent: print it when the printer is ready, then come back with the photo")
+        send = False
+    if send:
         from calib.progress import progress as progress_bar
         from calib.sender import open_port, send_gcode
 

@@ -34,3 +34,21 @@ def test_wizard_rejects_unknown_printer(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(UserError):
         run_wizard(inp=io.StringIO("no_such_printer\n"), out=io.StringIO())
+
+
+def test_wizard_with_a_port_asks_before_heating_and_sends_nothing_on_no(tmp_path, monkeypatch):
+    """--port used to start heating and homing without a question; now the user confirms
+    that the bed is clear, and 'no' (the default) opens no port at all."""
+    import calib.sender
+
+    def no_port(*a, **k):
+        raise AssertionError("the printer must not be contacted without a yes")
+    monkeypatch.setattr(calib.sender, "open_port", no_port)
+    monkeypatch.chdir(tmp_path)
+    out = io.StringIO()
+    with pytest.raises(UserError, match="ran out of answers"):
+        run_wizard(inp=io.StringIO("direct_drive\nsession\nstop-mid-path\n\n"), out=out,
+                   port="/dev/ttyUSB9")
+    text = out.getvalue()
+    assert "the bed clear and the nozzle clean? start printing now" in text
+    assert "not sent: print it when the printer is ready" in text
