@@ -129,8 +129,18 @@ def derived_values(param_names, samples, profile: dict, advance_fn=None,
     S = np.atleast_2d(np.asarray(samples, dtype=float))
     out: dict = {}
     tau_name = next((n for n in names if n.split("@")[0] in ("pa.tau_s", "pa.K_s", "pa.k_s")), None)
+    ve_name = next((n for n in names if n.split("@")[0] == "pa_ve.ve_us"), None)
+    tau = None
     if tau_name is not None:
         tau = S[:, names.index(tau_name)]
+    elif ve_name is not None:
+        # the pa_ve parameterisation: tau = 32 D^2 L l / d^4 * VE (seed 000), so every
+        # firmware target gets the same time constant a pa fit would give
+        one = ve_s_from_tau(1.0, *(profile.get(k, 0.0) for k in (
+            "filament_diameter_mm", "bowden_length_mm", "nozzle_land_length_mm", "nozzle_diameter_mm")))
+        if np.isfinite(one) and one > 0:
+            tau = S[:, names.index(ve_name)] * 1e-6 / one
+    if tau is not None:
         pa = summarize(tau)
         out["pressure_advance_s"] = pa
         out["firmware"] = firmware_commands(pa["median"])

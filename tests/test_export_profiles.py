@@ -201,3 +201,52 @@ def test_orca_filament_presets_only_arrays_kept_adaptive_pa_off(tmp_path, fit_js
         g.write_text(json.dumps(bad))
         assert main(["export", fit_json, "--to", "orca", "--profile", str(g)]) == 2
         assert msg in capsys.readouterr().err and json.loads(g.read_text()) == bad
+
+
+def _prusa_unescape(s: str) -> str:
+    """PrusaSlicer's unescape_string_cstyle for one quoted value: \\n, \\r, \\\\, \\"."""
+    out, i = [], 0
+    while i < len(s):
+        if s[i] == "\\" and i + 1 < len(s):
+            out.append({"n": "\n", "r": "\r"}.get(s[i + 1], s[i + 1]))
+            i += 2
+        else:
+            out.append(s[i])
+            i += 1
+    return "".join(out)
+
+
+def test_prusa_filament_ini_edits_inside_start_filament_gcode(tmp_path, fit_json, capsys):
+    f = tmp_path / "PLA.ini"
+    f.write_text('filament_type = PLA\nstart_filament_gcode = "; Filament gcode\\nM572 S0.05 ; PA\\n"\n'
+                 'temperature = 215\n')
+    assert main(["export", fit_json, "--to", "prusa", "--profile", str(f)]) == 0
+    line = [ln for ln in f.read_text().splitlines() if ln.startswith("start_filament_gcode")][0]
+    value = line.split("=", 1)[1].strip()
+    assert value.startswith('"') and value.endswith('"')
+    assert _prusa_unescape(value[1:-1]) == "; Filament gcode\nM572 S0.0412 ; PA\n"
+    assert "temperature = 215" in f.read_text()
+    # two extruders, no PA yet in the second: appended inside its own string only
+    g = tmp_path / "MMU.ini"
+    g.write_text('start_filament_gcode = "M572 S0.03\\n";"; second\\n"\n')
+    assert main(["export", fit_json, "--to", "prusa", "--profile", str(g), "--tool", "1"]) == 0
+    assert g.read_text() == 'start_filament_gcode = "M572 S0.03\\n";"; second\\nM572 S0.0412\\n"\n'
+    # per-nozzle conditionals: refused, untouched
+    h = tmp_path / "cond.ini"
+    cond = ('start_filament_gcode = "{if nozzle_diameter[0]==0.4}M572 S0.05{elsif '
+            'nozzle_diameter[0]==0.6}M572 S0.03{endif}\\n"\n')
+    h.write_text(cond)
+    capsys.readouterr()
+    assert main(["export", fit_json, "--to", "prusa", "--profile", str(h)]) == 2
+    assert "sets pressure advance 2 times" in capsys.readouterr().err and h.read_text() == cond
+
+
+def test_klipper_start_gcode_line_with_smooth_time(tmp_path, fit_json, capsys):
+    assert main(["export", fit_json, "--to", "klipper-gcode", "--section", "extruder1"]) == 0
+    assert capsys.readouterr().out == "SET_PRESSURE_ADVANCE EXTRUDER=extruder1 ADVANCE=0.0412 SMOOTH_TIME=0.040\n"
+    start = tmp_path / "start.gcode"
+    start.write_text("PRINT_START\nSET_PRESSURE_ADVANCE ADVANCE=0.02 SMOOTH_TIME=0.03\n"
+                     "SET_PRESSURE_ADVANCE EXTRUDER=extruder1 ADVANCE=0.05\nG28\n")
+    assert main(["export", fit_json, "--to", "klipper-gcode", "--profile", str(start)]) == 0
+    assert start.read_text() == ("PRINT_START\nSET_PRESSURE_ADVANCE ADVANCE=0.0412 SMOOTH_TIME=0.03\n"
+                                 "SET_PRESSURE_ADVANCE EXTRUDER=extruder1 ADVANCE=0.05\nG28\n")

@@ -107,3 +107,16 @@ def test_problem_advance_only_for_nonlinear_models_and_uses_the_data_range():
     assert width == pytest.approx(0.45)
     row = np.array([0.2, 0.03, 0.0, 0.8, 0.01, 0.5])      # model params + noise params
     np.testing.assert_allclose(fn(row, V), 0.2 * V + 0.03 * filament_area_mm2(1.75) * V ** 2)
+
+
+def test_pa_ve_fits_export_the_same_time_constant_as_pa():
+    """A pa_ve fit (VE in us) yields the firmware PA through tau = 32 D^2 L l / d^4 VE
+    (seed 000: VE 0.65 us with D 2.85, L 150, l 0.6, d 0.4 mm is tau 0.594 s)."""
+    from fit.derived import derived_values
+
+    prof = {"filament_diameter_mm": 2.85, "bowden_length_mm": 150, "nozzle_land_length_mm": 0.6,
+            "nozzle_diameter_mm": 0.4}
+    d = derived_values(["pa_ve.ve_us"], np.full((20, 1), 0.65), prof)
+    assert d["pressure_advance_s"]["median"] == pytest.approx(0.594, abs=0.002)
+    assert d["kisslicer_ve_us"]["median"] == pytest.approx(0.65, abs=1e-9)
+    assert d["firmware"]["marlin"].startswith("M900 K0.59")

@@ -12,6 +12,8 @@ another kind than the target edits is refused with one line:
   orca     filament JSON: "pressure_advance": ["K"] (string array) and
            "enable_pressure_advance": ["1"]
   marlin/rrf  a G-code/config file: the M900 / M572 line replaced or appended
+  klipper-gcode  start G-code: SET_PRESSURE_ADVANCE [EXTRUDER=] ADVANCE= SMOOTH_TIME=
+  prusa    PrusaSlicer/SuperSlicer filament ini: M572 S inside start_filament_gcode
   kisslicer   material .ini: ``matl_viscosity_over_elasticity_us=`` (KISSlicer 2's VE key,
               seed 000; a ``viscoelasticity_us=`` line from older calib versions is replaced)
 """
@@ -26,7 +28,7 @@ import numpy as np
 
 from calib.errors import UserError
 
-TARGETS = ("klipper", "marlin", "rrf", "orca", "kisslicer")
+TARGETS = ("klipper", "klipper-gcode", "marlin", "rrf", "orca", "prusa", "kisslicer")
 
 
 def add_parser(sub):
@@ -50,7 +52,9 @@ def add_parser(sub):
     return p
 
 
-FIRMWARE_TARGETS = ("klipper", "marlin", "rrf")
+FIRMWARE_TARGETS = ("klipper", "klipper-gcode", "marlin", "rrf", "prusa")
+#: Klipper's default pressure_advance_smooth_time (s); the fit does not estimate it
+KLIPPER_SMOOTH_TIME_S = 0.040
 KISS_VE_KEY = "matl_viscosity_over_elasticity_us"
 
 
@@ -115,7 +119,11 @@ def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
     if target == "kisslicer":
         return f"{KISS_VE_KEY}={ve_value(doc):.3f}"
     k = f"{pa_value(doc):.4f}"
+    extruder = "" if section == "extruder" else f" EXTRUDER={section}"
     return {"klipper": f"[{section}]\npressure_advance: {k}",
+            "klipper-gcode": f"SET_PRESSURE_ADVANCE{extruder} ADVANCE={k} "
+                             f"SMOOTH_TIME={KLIPPER_SMOOTH_TIME_S:.3f}",
+            "prusa": f"M572 S{k}",
             "marlin": tool_line("marlin", k, tool),
             "rrf": tool_line("rrf", k, tool),
             "orca": json.dumps({"enable_pressure_advance": ["1"], "pressure_advance": [k]})}[target]
@@ -138,10 +146,10 @@ def profile_kind(text: str) -> str:
 
 
 #: the file kinds each target may edit, and what to use instead
-ACCEPTS = {"klipper": ("klipper",), "orca": ("json",), "kisslicer": ("ini",),
-           "marlin": ("gcode",), "rrf": ("gcode",)}
-USE_INSTEAD = {"json": "--to orca", "klipper": "--to klipper", "ini": "--to kisslicer",
-               "gcode": "--to marlin or --to rrf"}
+ACCEPTS = {"klipper": ("klipper",), "orca": ("json",), "kisslicer": ("ini",), "prusa": ("ini",),
+           "marlin": ("gcode",), "rrf": ("gcode",), "klipper-gcode": ("gcode",)}
+USE_INSTEAD = {"json": "--to orca", "klipper": "--to klipper", "ini": "--to prusa or --to kisslicer",
+               "gcode": "--to marlin, rrf or klipper-gcode"}
 
 
 def check_kind(path, text: str, target: str) -> None:
@@ -151,11 +159,15 @@ def check_kind(path, text: str, target: str) -> None:
                         f"(use {USE_INSTEAD[kind]}); nothing was changed")
 
 
-def update_text(text: str, doc, target: str, tool: int = 0) -> str:
+def update_text(text: str, doc, target: str, tool: int = 0, section: str = "extruder") -> str:
     """The profile text with the setting replaced (or added); not for Klipper configs
     (:func:`calib.klipper_cfg.set_option` follows includes and SAVE_CONFIG)."""
     if target == "orca":
         return update_orca(text, pa_value(doc), tool)
+    if target == "prusa":
+        return update_prusa(text, f"{pa_value(doc):.4f}", tool)
+    if target == "klipper-gcode":
+        return update_klipper_macro(text, snippet(doc, target, section), f"{pa_value(doc):.4f}", section)
     if target == "kisslicer":
         line, pat = snippet(doc, target), rf"^\s*(?:{KISS_VE_KEY}|viscoelasticity_us)\s*=.*$"
         new, n = re.subn(pat, line, text, flags=re.MULTILINE)
@@ -213,6 +225,70 @@ def update_orca(text: str, k: float, tool: int = 0) -> str:
     eol = "\r\n" if "\r\n" in text else "\n"
     out = json.dumps(prof, indent=indent, ensure_ascii=False)
     return out.replace("\n", eol) + eol
+
+
+# after an escaped newline ("...\\nM572 S0.04") there is no word boundary: the escape ends in 'n'
+PA_IN_GCODE = re.compile(r"(?:(?<=\\n)|(?<=\\r)|(?<![A-Za-z0-9]))(M572|M900)\b([^\\;\"\n]*?)\b([SK])(-?[0-9.]+)",
+                         re.IGNORECASE)
+
+
+def update_prusa(text: str, k: str, tool: int = 0) -> str:
+    """A PrusaSlicer/SuperSlicer filament ini with the PA command inside
+    ``start_filament_gcode`` (a per-extruder list of C-style escaped strings, "a";"b")
+    set to ``k`` for extruder ``tool``. The escaped text is edited in place (a PA command
+    holds none of the escaped characters); a missing command is appended as ``M572 S``
+    (Prusa firmware, REFERENCE). Refused when the extruder's G-code sets PA more than
+    once (per-printer or per-nozzle conditionals): one value for all would be wrong."""
+    m = re.search(r"(?m)^(start_filament_gcode\s*=\s*)(.*?)(\r?)$", text)
+    if not m:
+        raise UserError("no start_filament_gcode line: is this a PrusaSlicer/SuperSlicer filament "
+                        "preset (exported with File > Export > Export Config)?")
+    value = m.group(2)
+    strings = list(re.finditer(r'"((?:[^"\\]|\\.)*)"', value))
+    spans = [(s.start(1), s.end(1)) for s in strings] or [(0, len(value))]
+    if tool >= len(spans):
+        raise UserError(f"start_filament_gcode has {len(spans)} extruder entries; --tool {tool} is "
+                        "not one of them")
+    a, b = spans[tool]
+    part = value[a:b]
+    hits = list(PA_IN_GCODE.finditer(part))
+    if len(hits) > 1:
+        raise UserError(f"this preset sets pressure advance {len(hits)} times in start_filament_gcode ("
+                        + ", ".join(h.group(0).strip() for h in hits) + "), probably per printer or "
+                        "nozzle; set the one for your printer by hand to " + k)
+    if hits:
+        h = hits[0]
+        part = part[:h.start(4)] + k + part[h.end(4):]
+    else:
+        sep = "" if part.endswith("\\n") or not part else "\\n"
+        part = part + f"{sep}M572 S{k}\\n"
+    value = value[:a] + part + value[b:]
+    return text[:m.start(2)] + value + text[m.end(2):]
+
+
+def update_klipper_macro(text: str, line: str, k: str, section: str) -> str:
+    """Slicer start G-code: the ADVANCE= of the SET_PRESSURE_ADVANCE lines for this
+    extruder (no EXTRUDER= means the active one, taken as ``extruder``) replaced, else the
+    line appended."""
+    eol = "\r\n" if "\r\n" in text else "\n"
+    lines = text.replace("\r\n", "\n").split("\n")
+    hit = False
+    for i, ln in enumerate(lines):
+        if not re.match(r"\s*SET_PRESSURE_ADVANCE\b", ln, re.IGNORECASE):
+            continue
+        ex = re.search(r"\bEXTRUDER=(\S+)", ln, re.IGNORECASE)
+        if (ex.group(1) if ex else "extruder") != section:
+            continue
+        hit = True
+        if re.search(r"\bADVANCE=", ln, re.IGNORECASE):
+            lines[i] = re.sub(r"(\bADVANCE=)[-+0-9.]+", rf"\g<1>{k}", ln, flags=re.IGNORECASE)
+        else:
+            lines[i] = ln.rstrip() + f" ADVANCE={k}"
+    if not hit:
+        while lines and lines[-1] == "":
+            lines.pop()
+        lines += [line, ""]
+    return eol.join(lines)
 
 
 def _tool_matches(target: str, code: str, tool: int) -> bool:
@@ -288,7 +364,7 @@ def run(args) -> int:
 
         changes = set_option(path, args.section, "pressure_advance", f"{pa_value(doc):.4f}")
     else:
-        new = update_text(text, doc, args.to, args.tool)
+        new = update_text(text, doc, args.to, args.tool, args.section)
         changes = {path: new} if new != text else {}
     if not changes:
         print(f"{path} already has this value; nothing written")
