@@ -22,7 +22,7 @@ def test_wizard_writes_the_pattern_then_stops_clearly_when_answers_run_out(tmp_p
     with pytest.raises(UserError, match="ran out of answers"):
         run_wizard(inp=io.StringIO(answers), out=out)
     files = sorted(p.name for p in (tmp_path / "session").iterdir())
-    assert files == ["stop-mid-path.gcode", "stop-mid-path.manifest.json",
+    assert files == ["session.json", "stop-mid-path.gcode", "stop-mid-path.manifest.json",
                      "stop-mid-path.preview.png", "stop-mid-path.timeline.npz"]
     text = out.getvalue()
     # every step shows the command a user could type by hand
@@ -52,3 +52,57 @@ def test_wizard_with_a_port_asks_before_heating_and_sends_nothing_on_no(tmp_path
     text = out.getvalue()
     assert "the bed clear and the nozzle clean? start printing now" in text
     assert "not sent: print it when the printer is ready" in text
+
+
+def test_a_second_run_resumes_without_rewriting_the_pattern(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError, match="ran out of answers"):
+        run_wizard(inp=io.StringIO("direct_drive\nsession\nretract\nn\n"), out=io.StringIO())
+    gcode = tmp_path / "session" / "retract.gcode"
+    stamp = gcode.stat().st_mtime_ns
+    out = io.StringIO()
+    with pytest.raises(UserError, match="ran out of answers"):
+        run_wizard(inp=io.StringIO("direct_drive\nsession\ny\nn\n"), out=out)
+    text = out.getvalue()
+    assert "has a session (pattern done): resume it?" in text and "resuming" in text
+    assert "$ calib pattern" not in text and "test pattern (" not in text
+    assert gcode.stat().st_mtime_ns == stamp
+    assert "path to the photo or scan" in text
+
+
+def test_a_typo_in_the_model_is_asked_again_and_the_virtual_truth_follows_the_printer():
+    from calib.demo import _Runner
+    from calib.wizard import _ask_model, _virtual_truth
+    from patterns.profile import load_profile
+
+    out = io.StringIO()
+    prof = load_profile("direct_drive")
+    model = _ask_model(Asker(io.StringIO("pa+termal\npa+thermal\n"), out), _Runner(".", out), prof,
+                       "auto")
+    assert model == "pa+thermal" and "unknown effect" in out.getvalue()
+    assert _virtual_truth(prof).name == "direct_drive.toml"
+    assert _virtual_truth(load_profile("adventurer3")).name == "bowden.toml"
+
+
+def test_the_wizard_ends_with_the_exports_the_user_picks(tmp_path, capsys):
+    import json
+
+    from calib.demo import _Runner
+    from calib.wizard import _exports
+    from patterns.profile import load_profile
+
+    fit = tmp_path / "fit.json"
+    fit.write_text(json.dumps({
+        "schema": "calib.fit/1", "model": "pa", "converged": True,
+        "information": {"chi2_nu": 1.0, "rms_mm": 0.01, "n_obs": 500, "loo": {}},
+        "params": {"pa.tau_s": {"median": 0.0412, "ci95": [0.04, 0.042]}},
+        "priors": {"pa.tau_s": {"kind": "loguniform", "lower": 0.005, "upper": 5.0}},
+        "derived": {"pressure_advance_s": {"median": 0.0412}}, "profile": {}, "samples": []}))
+    preset = tmp_path / "PLA.json"
+    preset.write_text('{"name": "PLA", "pressure_advance": ["0.02"]}')
+    out = io.StringIO()
+    answers = f"klipper-typo,marlin\nmarlin, orca\n\n{preset}\n"
+    _exports(Asker(io.StringIO(answers), out), _Runner(".", out), load_profile("direct_drive"), fit)
+    assert "unknown export(s) klipper-typo" in out.getvalue()
+    assert "M900 K0.0412" in capsys.readouterr().out
+    assert json.loads(preset.read_text())["pressure_advance"] == ["0.0412"]
