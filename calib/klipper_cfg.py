@@ -173,12 +173,24 @@ def effective_value(path, section: str, option: str, read=None) -> str | None:
     return cp.get(section, option) if cp.has_option(section, option) else None
 
 
-def set_option(path, section: str, option: str, value: str) -> dict:
+def set_options(path, section: str, values: dict) -> dict:
+    """:func:`set_option` for several options of one section; new texts {Path: text}."""
+    new: dict = {}
+
+    def read(p):
+        return new[Path(p)] if Path(p) in new else read_exact(p)
+    for option, value in values.items():
+        new.update(set_option(path, section, option, value, read=read))
+    return new
+
+
+def set_option(path, section: str, option: str, value: str, read=None) -> dict:
     """New texts {Path: text} that make Klipper read ``option: value`` in ``[section]``
     (empty when it already does). Edits the last assignment Klipper reads (in an included
     file if that is where it is), else adds the option under the last ``[section]`` header;
     never touches the SAVE_CONFIG block. Line endings and comments are kept."""
-    tree = read_tree(path)
+    read = read or read_exact
+    tree = read_tree(path, read)
     if not tree.headers:
         raise UserError(f"{path} has no [section] headers: not a Klipper printer.cfg")
     a = tree.last(section, option)
@@ -198,7 +210,7 @@ def set_option(path, section: str, option: str, value: str) -> dict:
                                "; is this the printer's main printer.cfg?"))
         target, idx, _ = heads[-1]
         new_line, replace = f"{option}: {value}", False
-    if effective_value(path, section, option) == value:
+    if effective_value(path, section, option, read=read) == value:
         return {}
     text = tree.texts[target]
     eol = "\r\n" if "\r\n" in text else "\n"
@@ -209,7 +221,7 @@ def set_option(path, section: str, option: str, value: str) -> dict:
         lines.insert(idx + 1, new_line)
     new = {target: eol.join(lines)}
     got = effective_value(path, section, option,
-                          read=lambda p: new[Path(p)] if Path(p) in new else read_exact(p))
+                          read=lambda p: new[Path(p)] if Path(p) in new else read(p))
     if got != value:        # never write a file Klipper would read differently
         raise UserError(f"could not set [{section}] {option} in {path}: Klipper would read {got!r}")
     return new

@@ -250,3 +250,27 @@ def test_klipper_start_gcode_line_with_smooth_time(tmp_path, fit_json, capsys):
     assert main(["export", fit_json, "--to", "klipper-gcode", "--profile", str(start)]) == 0
     assert start.read_text() == ("PRINT_START\nSET_PRESSURE_ADVANCE ADVANCE=0.0412 SMOOTH_TIME=0.03\n"
                                  "SET_PRESSURE_ADVANCE EXTRUDER=extruder1 ADVANCE=0.05\nG28\n")
+
+
+def test_kalico_nonlinear_pa_into_printer_cfg(tmp_path, fit_json, capsys):
+    doc = json.loads(Path(fit_json).read_text())
+    doc["derived"]["kalico_tanh"] = {"pressure_advance_s": {"median": 0.017},
+                                     "offset_mm": {"median": 0.12},
+                                     "linearization_velocity_mm_s": {"median": 1.3}}
+    fit = tmp_path / "nl.json"
+    fit.write_text(json.dumps(doc))
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("[extruder]\nstep_pin: PB3\npressure_advance: 0.04\n" + SAVE_BLOCK)
+    assert main(["export", str(fit), "--to", "kalico-tanh", "--profile", str(cfg)]) == 0
+    k = klipper_reads(cfg)
+    assert k.get("extruder", "pressure_advance_model") == "tanh"
+    assert k.getfloat("extruder", "linear_advance") == 0.017
+    assert k.getfloat("extruder", "nonlinear_offset") == 0.12
+    assert k.getfloat("extruder", "linearization_velocity") == 1.3
+    assert k.get("stepper_z", "position_endstop") == "0.512"
+    assert len(list(tmp_path.glob("printer.cfg.bak-*"))) == 1          # one backup, one write
+    assert "bleeding-edge-v2" in capsys.readouterr().err
+    assert main(["export", str(fit), "--to", "kalico-tanh"]) == 0
+    assert "SET_PRESSURE_ADVANCE ADVANCE=0.0170 OFFSET=0.1200 VELOCITY=1.3000" in capsys.readouterr().out
+    assert main(["export", fit_json, "--to", "kalico-recipr"]) == 2      # a linear fit: no match
+    assert "needs a nonlinear advance term" in capsys.readouterr().err

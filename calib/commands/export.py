@@ -28,7 +28,8 @@ import numpy as np
 
 from calib.errors import UserError
 
-TARGETS = ("klipper", "klipper-gcode", "marlin", "rrf", "orca", "prusa", "kisslicer")
+TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf", "orca",
+           "prusa", "kisslicer")
 
 
 def add_parser(sub):
@@ -52,7 +53,8 @@ def add_parser(sub):
     return p
 
 
-FIRMWARE_TARGETS = ("klipper", "klipper-gcode", "marlin", "rrf", "prusa")
+FIRMWARE_TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf",
+                    "prusa")
 #: Klipper's default pressure_advance_smooth_time (s); the fit does not estimate it
 KLIPPER_SMOOTH_TIME_S = 0.040
 KISS_VE_KEY = "matl_viscosity_over_elasticity_us"
@@ -115,7 +117,27 @@ def ve_value(doc) -> float:
     return float(d["median"])
 
 
+def kalico_values(doc, target: str) -> dict:
+    """Kalico's [extruder] options for its nonlinear PA (bleeding-edge-v2 branch,
+    klippy/kinematics/extruder.py: pressure_advance_model tanh|recipr, linear_advance s,
+    nonlinear_offset mm, linearization_velocity mm/s > 0), from the fit's Kalico match."""
+    kind = target.split("-", 1)[1]
+    d = doc.get("derived", {}).get(f"kalico_{kind}")
+    if not d:
+        raise UserError("this fit has no Kalico match: it needs a nonlinear advance term; fit "
+                        "pa+nonlinear (or --model auto) for Kalico's nonlinear pressure advance")
+    return {"pressure_advance_model": kind,
+            "linear_advance": f"{d['pressure_advance_s']['median']:.4f}",
+            "nonlinear_offset": f"{d['offset_mm']['median']:.4f}",
+            "linearization_velocity": f"{max(d['linearization_velocity_mm_s']['median'], 1e-4):.4f}"}
+
+
 def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
+    if target.startswith("kalico-"):
+        v = kalico_values(doc, target)
+        return (f"[{section}]\n" + "\n".join(f"{k}: {x}" for k, x in v.items())
+                + f"\n# at run time: SET_PRESSURE_ADVANCE ADVANCE={v['linear_advance']} "
+                  f"OFFSET={v['nonlinear_offset']} VELOCITY={v['linearization_velocity']}")
     if target == "kisslicer":
         return f"{KISS_VE_KEY}={ve_value(doc):.3f}"
     k = f"{pa_value(doc):.4f}"
@@ -146,7 +168,7 @@ def profile_kind(text: str) -> str:
 
 
 #: the file kinds each target may edit, and what to use instead
-ACCEPTS = {"klipper": ("klipper",), "orca": ("json",), "kisslicer": ("ini",), "prusa": ("ini",),
+ACCEPTS = {"klipper": ("klipper",), "kalico-tanh": ("klipper",), "kalico-recipr": ("klipper",), "orca": ("json",), "kisslicer": ("ini",), "prusa": ("ini",),
            "marlin": ("gcode",), "rrf": ("gcode",), "klipper-gcode": ("gcode",)}
 USE_INSTEAD = {"json": "--to orca", "klipper": "--to klipper", "ini": "--to prusa or --to kisslicer",
                "gcode": "--to marlin, rrf or klipper-gcode"}
@@ -343,6 +365,10 @@ def run(args) -> int:
         print(f"calib export: warning: {warn}", file=sys.stderr)
     if args.to == "kisslicer":
         print(f"calib export: note: {kisslicer_geometry_note(doc)}", file=sys.stderr)
+    if args.to.startswith("kalico-"):
+        print("calib export: note: pressure_advance_model is in Kalico's bleeding-edge-v2 branch, "
+              "not in its main branch (checked 2026-11); stock Klipper rejects these options",
+              file=sys.stderr)
     if not args.profile:
         print(snippet(doc, args.to, args.section, args.tool))
         if args.to == "marlin":
@@ -363,6 +389,10 @@ def run(args) -> int:
         from calib.klipper_cfg import set_option
 
         changes = set_option(path, args.section, "pressure_advance", f"{pa_value(doc):.4f}")
+    elif args.to.startswith("kalico-"):
+        from calib.klipper_cfg import set_options
+
+        changes = set_options(path, args.section, kalico_values(doc, args.to))
     else:
         new = update_text(text, doc, args.to, args.tool, args.section)
         changes = {path: new} if new != text else {}
