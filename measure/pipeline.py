@@ -24,6 +24,15 @@ from measure.widths import WidthMeasurement, measure_widths
 MIN_VALID_FRACTION = 0.2
 
 
+class MeasureRefused(UserError):
+    """The picture was registered and measured, but the result fails a check: the
+    partial ``result`` still lets the CLI write the QA overlay and summary that show why."""
+
+    def __init__(self, message: str, result):
+        super().__init__(message)
+        self.result = result
+
+
 @dataclass
 class MeasureResult:
     table: WidthTable
@@ -58,14 +67,8 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     if not np.isfinite(reg.residual_mm):
         reg.residual_mm = reg.track_offset_rms_mm
     warnings = list(reg.warnings)
-    if valid_frac < MIN_VALID_FRACTION:
-        raise UserError(f"only {valid_frac:.0%} of the samples could be measured: the picture does not show this "
-                        "pattern's tracks where the registration puts them (wrong pattern, or wrong --points?)")
     if valid_frac < 0.7:
         warnings.append(f"only {valid_frac:.0%} of the samples are valid; check the QA overlay")
-    if max_residual_mm is not None and not (reg.residual_mm <= max_residual_mm):
-        raise UserError(f"registration residual {reg.residual_mm:.3f} mm is above --max-residual-mm "
-                        f"{max_residual_mm:g}: re-take the picture flat and sharp, or give better --points")
     flags = Counter(f for f in table.flag if f)
     ok = table.valid
     summary = {
@@ -87,10 +90,22 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
                       for t in np.unique(table.track)},
         "warnings": warnings,
     }
+    result = MeasureResult(table=table, registration=reg, summary=summary, measurement=meas, color=color)
+    refusal = None
+    if valid_frac < MIN_VALID_FRACTION:
+        refusal = (f"only {valid_frac:.0%} of the samples could be measured: the picture does not show "
+                   "this pattern's tracks where the registration puts them (wrong pattern, or wrong "
+                   "--points?)")
+    elif max_residual_mm is not None and not (reg.residual_mm <= max_residual_mm):
+        refusal = (f"registration residual {reg.residual_mm:.3f} mm is above --max-residual-mm "
+                   f"{max_residual_mm:g}: re-take the picture flat and sharp, or give better --points")
+    if refusal:
+        summary["refused"] = refusal
+        raise MeasureRefused(refusal, result)
     if overlay_path is not None:
         from measure.overlay import draw_overlay, save_overlay
         save_overlay(overlay_path, draw_overlay(color, manifest, reg, meas))
-    return MeasureResult(table=table, registration=reg, summary=summary, measurement=meas, color=color)
+    return result
 
 
 def save_summary(path, summary: dict) -> None:

@@ -65,7 +65,14 @@ def test_bad_inputs_exit_2_with_one_line_and_no_csv(scan, capsys):
     assert "found 0 of the pattern's 4 fiducials" in _run_bad(d, "nomarkers.png", capsys)
     assert "is it a picture of another pattern?" in _run_bad(d, "scan.png", capsys, manifest="other.manifest.json")
     msg = _run_bad(d, "scan.png", capsys, "--max-residual-mm", "0.00001")
-    assert "is above --max-residual-mm 1e-05" in msg
+    assert "is above --max-residual-mm 1e-05" in msg and "add --overlay" in msg
+    # a refused measurement still writes the overlay and summary that show why (no CSV)
+    qa, summ = d / "refused_qa.png", d / "refused.json"
+    msg = _run_bad(d, "scan.png", capsys, "--max-residual-mm", "0.00001", "--overlay", str(qa),
+                   "--summary", str(summ))
+    assert str(qa) in msg and qa.stat().st_size > 1000
+    import json
+    assert "max-residual-mm" in json.loads(summ.read_text())["refused"]
     assert "manifest" in _run_bad(d, "scan.png", capsys, manifest="missing.manifest.json")
     assert "at least 4 are needed" in _run_bad(d, "scan.png", capsys, "--points", "1,2=3,4")
     # a hint that starts with '-' (centre-origin beds) reaches the measurement, not argparse

@@ -24,22 +24,24 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from measure.pipeline import measure_scan, save_summary
+    from measure.pipeline import MeasureRefused, measure_scan, save_summary
     from patterns.manifest import Manifest
     from calib.errors import UserError
 
     if args.max_residual_mm is not None and not args.max_residual_mm > 0:
         raise UserError(f"--max-residual-mm must be positive, not {args.max_residual_mm:g}")
     man = Manifest.load(args.manifest)
-    res = measure_scan(args.scan, man, points=args.points, overlay_path=None,
-                       max_residual_mm=args.max_residual_mm)
-    # outputs only once every check passed
+    try:
+        res = measure_scan(args.scan, man, points=args.points, overlay_path=None,
+                           max_residual_mm=args.max_residual_mm)
+    except MeasureRefused as exc:
+        # no widths CSV, but the overlay and summary that show why (the user's next step)
+        shown = _write_qa(args, man, exc.result)
+        raise UserError(str(exc) + (f" (see {', '.join(shown)})" if shown else
+                                    " (add --overlay qa.png to see why)")) from None
+    # the CSV only once every check passed
     res.table.save(args.output)
-    if args.overlay:
-        from measure.overlay import draw_overlay, save_overlay
-        save_overlay(args.overlay, draw_overlay(res.color, man, res.registration, res.measurement))
-    if args.summary:
-        save_summary(args.summary, res.summary)
+    _write_qa(args, man, res)
     s = res.summary
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "
           f"registration residual {res.registration.residual_mm:.3f} mm ({res.registration.method})",
@@ -47,3 +49,17 @@ def run(args) -> int:
     for w in s["warnings"]:
         print(f"calib measure: warning: {w}", file=sys.stderr)
     return 0
+
+
+def _write_qa(args, man, res) -> list[str]:
+    from measure.overlay import draw_overlay, save_overlay
+    from measure.pipeline import save_summary
+
+    out = []
+    if args.overlay:
+        save_overlay(args.overlay, draw_overlay(res.color, man, res.registration, res.measurement))
+        out.append(str(args.overlay))
+    if args.summary:
+        save_summary(args.summary, res.summary)
+        out.append(str(args.summary))
+    return out
