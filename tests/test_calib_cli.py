@@ -44,3 +44,17 @@ def test_demo_rejects_unknown_printer_before_any_work(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown printer 'nope'" in err[0]
     assert not out.exists()
+
+
+def test_report_with_a_12_mp_photo_stays_under_2_mb(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    from calib.report import build_report
+
+    rng = np.random.default_rng(0)
+    photo = tmp_path / "photo.png"
+    Image.fromarray(rng.integers(0, 255, (3000, 4000, 3), dtype=np.uint8)).save(photo)
+    html = build_report("t", scan=photo, overlay=photo)
+    assert html.count("data:image/jpeg;base64,") == 2
+    assert len(html.encode()) < 2_000_000
