@@ -206,7 +206,10 @@ class _State:
         cmd = letter + (_canon(num) if num else "")
         args = {}
         for k, v in words[1:]:
-            args[k] = float(v) if v else None
+            args[k] = _number(k, v, lineno, code) if v else None
+        if cmd in MOTION and any(args[a] is None for a in "XYZEF" if a in args):
+            raise UserError(f"line {lineno}: {cmd} has an axis word without a number: "
+                            f"{code.strip()[:60]!r}")
         self._command(cmd, args, lineno)
         return 1
 
@@ -443,6 +446,20 @@ def auto_tracks(moves: Moves, min_seg_mm: float = 1e-6) -> np.ndarray:
     start = ext & ~(prev_ext & same_z)
     ids = np.cumsum(start) - 1
     return np.where(ext, ids, -1).astype(np.int64)
+
+
+#: commands whose X/Y/Z/E/F words must carry numbers (a bare 'X' or 'X NaN' is not 0)
+MOTION = ("G0", "G1", "G2", "G3", "G92")
+#: no printer is larger than this; beyond it a number is a typo or a corrupt file (mm)
+MAX_ABS_COORD_MM = 1.0e5
+
+
+def _number(letter: str, text: str, lineno: int, code: str) -> float:
+    f = float(text)
+    if not math.isfinite(f) or (letter in "XYZIJ" and abs(f) > MAX_ABS_COORD_MM):
+        raise UserError(f"line {lineno}: {letter}{text} is not a usable number "
+                        f"(|value| > {MAX_ABS_COORD_MM:g} or not finite): {code.strip()[:60]!r}")
+    return f
 
 
 def _canon(num: str) -> str:
