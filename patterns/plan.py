@@ -14,10 +14,13 @@ labelled track get width 0 (coasting).
 Layer height h: the commanded bead height where the G-code says it (our writer's
 ``;TRACK ... h=<mm>`` / ``;HEIGHT h=<mm>`` labels, ``Moves.height_mm``), so a track
 printed with h different from the z spacing comes back with its commanded width.
-Elsewhere (third-party G-code): z minus the highest lower z level that holds at least a
-quarter as much filament as this level (so a prime line at z = 0.2 under a single-layer
-test at z = 0.3 does not make the test 0.1 mm high); z itself on the first layer. Pass
-``layer_height_mm`` to override both.
+Elsewhere (third-party G-code): z minus the top of the plastic already printed *under
+this move's path* (a map of the top surface on a 0.5 mm grid, the bed at z = 0), so a
+line printed straight on the bed at z = 0.3 is 0.3 mm high whatever was printed elsewhere
+at z = 0.2 (tests that vary h line by line), and a second layer is the z spacing. A move
+with nothing under it that ends up higher than 1.5 nozzle diameters is a bridge (or a
+print in the air): its strand is taken as round, h = the nozzle diameter, with a warning.
+Pass ``layer_height_mm`` to override both.
 """
 from __future__ import annotations
 
@@ -62,8 +65,10 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
         area = np.where(lxy > 1e-9, np.maximum(mv.de_mm, 0.0) * af / lxy, 0.0)
         l3 = mp.length_mm
         v_head = np.where((mp.kind == 0) & (l3 > 0), mp.v_cruise_mm_s * lxy / np.where(l3 > 0, l3, 1), 0.0)
+    warnings = list(pr.warnings)
     if layer_height_mm is None:
-        heights = _layer_heights(mv, area, lxy)
+        heights, hw = _layer_heights(mv, area, lxy, prof.nozzle_diameter_mm)
+        warnings += hw
         labelled_h = np.isfinite(mv.height_mm) & (mv.height_mm > 0)
         heights = np.where(labelled_h, mv.height_mm, heights)
     else:
@@ -101,8 +106,16 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
 
     pat = dict(pattern) if pattern is not None else {"name": "gcode"}
     pat.setdefault("planned_duration_s", round(mp.total_time_s, 3))
-    if pr.warnings:
-        pat.setdefault("warnings", list(pr.warnings))
+    for tr in tracks:      # one line per implausible commanded bead (usually a wrong h)
+        w = np.asarray(tr.width_mm, dtype=float)
+        w = w[w > 0]
+        d = prof.nozzle_diameter_mm
+        if w.size and (np.median(w) > 4 * d or np.median(w) < 0.5 * d):
+            warnings.append(f"track {tr.id}: commanded width {np.median(w):.2f} mm is implausible for a "
+                            f"{d:g} mm nozzle (height {np.median(tr.height_mm):.3f} mm); check the "
+                            "layer height (--layer-height)")
+    if warnings:
+        pat.setdefault("warnings", warnings)
     if pr.pa_events:
         times = np.asarray(mp.t_start_s)
         pat.setdefault("firmware_pa", [
@@ -112,19 +125,36 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
     return Manifest(printer=prof.to_dict(), pattern=pat, tracks=tracks, timeline=tl)
 
 
-def _layer_heights(mv, area, lxy) -> np.ndarray:
-    """Per-move layer height (mm), see the module docstring."""
-    z = np.round(mv.z_mm, 4)
-    ext = (area > 0) & (lxy > 1e-9)
+#: grid of the top-surface map (mm)
+SURFACE_CELL_MM = 0.5
+
+
+def _layer_heights(mv, area, lxy, nozzle_mm: float) -> tuple[np.ndarray, list[str]]:
+    """Per-move layer height (mm) and warnings, see the module docstring."""
+    z = np.asarray(mv.z_mm, dtype=float)
     h = np.maximum(z, 1e-3)
-    if not ext.any():
-        return h
-    levels, inv = np.unique(z[ext], return_inverse=True)
-    fil = np.bincount(inv, weights=mv.de_mm[ext])
-    lev_h = levels.copy()
-    for j in range(1, len(levels)):
-        below = [i for i in range(j) if fil[i] >= 0.25 * fil[j]]
-        if below:
-            lev_h[j] = levels[j] - levels[max(below)]
-    lookup = dict(zip(levels.tolist(), lev_h.tolist()))
-    return np.array([lookup.get(zz, max(zz, 1e-3)) for zz in z.tolist()])
+    warnings: list[str] = []
+    top: dict = {}                      # (ix, iy) -> top of the plastic there (mm)
+    bridged = 0
+    for i in np.flatnonzero((area > 0) & (lxy > 1e-9)):
+        n = max(2, int(np.ceil(lxy[i] / SURFACE_CELL_MM)) + 1)
+        xs = np.linspace(mv.x0_mm[i], mv.x_mm[i], n)
+        ys = np.linspace(mv.y0_mm[i], mv.y_mm[i], n)
+        cells = set(zip(np.round(xs / SURFACE_CELL_MM).astype(np.int64).tolist(),
+                        np.round(ys / SURFACE_CELL_MM).astype(np.int64).tolist()))
+        zi = float(z[i])
+        # plastic of this same layer (a neighbouring line) is beside the bead, not under it
+        below = [top[c] for c in cells if c in top and top[c] < zi - 0.01]
+        base = max(below) if below else 0.0
+        hi = zi - base
+        if hi > 1.5 * nozzle_mm:
+            bridged += 1
+            hi = nozzle_mm
+        h[i] = max(hi, 1e-3)
+        for c in cells:
+            top[c] = max(top.get(c, 0.0), zi)
+    if bridged:
+        warnings.append(f"{bridged} extruding move(s) have nothing printed under them more than "
+                        f"{1.5 * nozzle_mm:.2f} mm down (bridges or prints in the air): their strand "
+                        f"is taken as round, h = {nozzle_mm:g} mm")
+    return h, warnings

@@ -146,3 +146,31 @@ def test_retract_pattern_manifest_keeps_each_design_width_and_height():
         assert np.allclose(tr.height_mm[wide], h)
         # the drawn part (at least) is at the design width
         assert np.isclose(tr.width_mm[wide], tr.params["width_mm"], atol=1e-4).sum() >= 2
+
+
+def test_heights_come_from_what_is_under_the_path():
+    """Lines straight on the bed at different Z (a test that varies h line by line) keep
+    their Z as height; a second layer gets the Z spacing; a strand with nothing below
+    it high up is a bridge (round strand, h = nozzle) with a warning."""
+    from fit.geometry import bead_area_mm2, filament_area_mm2
+    from patterns.plan import manifest_from_gcode
+
+    af = filament_area_mm2(1.75)
+    lines = ["G21", "G90", "M83", "G28"]
+
+    def line(y, z, w=0.45, h=None, x0=20.0, x1=60.0):
+        e = float(bead_area_mm2(w, h if h is not None else z)) * (x1 - x0) / af
+        lines.extend([f"G0 Z{z + 1:.3f} F600", f"G0 X{x0} Y{y} F6000", f"G0 Z{z:.3f}",
+                      f"G1 X{x1} Y{y} E{e:.5f} F1200"])
+    for k, z in enumerate((0.20, 0.24, 0.28, 0.32)):
+        line(20 + 5 * k, z)                    # each on the bed
+    line(60, 0.2)
+    line(60, 0.4, h=0.2)                       # stacked on the line below
+    line(100, 5.0, h=0.4)                      # 5 mm up over nothing: a bridge
+    man = manifest_from_gcode("\n".join(lines) + "\n", "ender3")
+    hs = [round(float(np.median(t.height_mm)), 3) for t in man.tracks]
+    ws = [round(float(np.median(t.width_mm)), 3) for t in man.tracks]
+    assert hs[:4] == [0.2, 0.24, 0.28, 0.32] and ws[:4] == [0.45] * 4
+    assert hs[5] == 0.2 and ws[5] == 0.45
+    assert hs[6] == 0.4
+    assert any("bridges or prints in the air" in w for w in man.pattern["warnings"])
