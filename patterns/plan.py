@@ -106,6 +106,7 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
 
     pat = dict(pattern) if pattern is not None else {"name": "gcode"}
     pat.setdefault("planned_duration_s", round(mp.total_time_s, 3))
+    pat.setdefault("labelled", bool(pr.labelled))      # our ;TRACK labels: kinds are known
     for tr in tracks:      # one line per implausible commanded bead (usually a wrong h)
         w = np.asarray(tr.width_mm, dtype=float)
         w = w[w > 0]
@@ -158,3 +159,66 @@ def _layer_heights(mv, area, lxy, nozzle_mm: float) -> tuple[np.ndarray, list[st
                         f"{1.5 * nozzle_mm:.2f} mm down (bridges or prints in the air): their strand "
                         f"is taken as round, h = {nozzle_mm:g} mm")
     return h, warnings
+
+
+def parse_id_ranges(text: str) -> set[int]:
+    """"3-8,12" -> {3, 4, 5, 6, 7, 8, 12}; UserError on anything else."""
+    from calib.errors import UserError
+
+    out: set[int] = set()
+    for part in (p.strip() for p in str(text).split(",") if p.strip()):
+        try:
+            if "-" in part[1:]:
+                a, b = part.split("-", 1) if not part.startswith("-") else (part, part)
+                out.update(range(int(a), int(b) + 1))
+            else:
+                out.add(int(part))
+        except ValueError:
+            raise UserError(f"--tracks: {part!r} is not a track id or a range like 3-8") from None
+    return out
+
+
+def select_tracks(manifest: Manifest, ids: set[int] | None = None,
+                  z_range_mm: tuple[float, float] | None = None, auto_exclude: bool = True,
+                  bed_margin_mm: float = 10.0) -> list[str]:
+    """Decide which tracks are the test (kind "test"); the others become "other" or
+    "prime". Returns one line per decision a user should know about.
+
+    ids / z_range_mm: only these track ids / tracks whose z lies in [lo, hi] (mm) are tests.
+    auto_exclude (G-code without our labels): the first extruding track when it runs
+    within ``bed_margin_mm`` of the bed edge is the prime line; closed loops (start and end
+    within 1 mm, longer than 10 mm: skirts, dial rings, perimeters) are "other"."""
+    notes: list[str] = []
+    prof = manifest.printer
+    (x0, x1), (y0, y1) = prof.get("bed_x_mm", (-1e9, 1e9)), prof.get("bed_y_mm", (-1e9, 1e9))
+    first = min((t.id for t in manifest.tracks), default=None)
+    for t in manifest.tracks:
+        if t.kind not in ("test", "other"):
+            continue
+        pts = np.asarray(t.points_mm, dtype=float)
+        why = None
+        if ids is not None and t.id not in ids:
+            why = "not in --tracks"
+        elif z_range_mm is not None and not (z_range_mm[0] - 1e-6 <= t.z_mm <= z_range_mm[1] + 1e-6):
+            why = "outside --z-range-mm"
+        elif auto_exclude and ids is None and len(pts) >= 2:
+            near_edge = (pts[:, 0].min() - x0 < bed_margin_mm or x1 - pts[:, 0].max() < bed_margin_mm
+                         or pts[:, 1].min() - y0 < bed_margin_mm or y1 - pts[:, 1].max() < bed_margin_mm)
+            length = float(np.sum(np.hypot(*np.diff(pts, axis=0).T)))
+            if t.id == first and near_edge:
+                t.kind = "prime"
+                notes.append(f"track {t.id} ({length:.0f} mm near the bed edge, printed first) is "
+                             "taken as the prime line; --tracks to override")
+                continue
+            if np.hypot(*(pts[0] - pts[-1])) < 1.0 and length > 10.0 and t.kind == "test":
+                t.kind = "other"
+                notes.append(f"track {t.id} is a closed loop ({length:.0f} mm: skirt, ring or "
+                             "perimeter), not a test line; --tracks to override")
+                continue
+        if why:
+            t.kind = "other"
+        elif ids is not None or z_range_mm is not None:
+            t.kind = "test"
+    if not manifest.test_tracks():
+        notes.append("no test track left: check --tracks / --z-range-mm")
+    return notes

@@ -174,3 +174,32 @@ def test_heights_come_from_what_is_under_the_path():
     assert hs[5] == 0.2 and ws[5] == 0.45
     assert hs[6] == 0.4
     assert any("bridges or prints in the air" in w for w in man.pattern["warnings"])
+
+
+def test_plan_picks_the_test_tracks(tmp_path, capsys):
+    """Third-party G-code: the prime line along the bed edge and a closed ring are not
+    test tracks by default; --tracks and --z-range-mm choose explicitly."""
+    from calib.cli import main
+    from patterns.manifest import Manifest
+
+    g = ["G21", "G90", "M83", "G28", "G0 Z0.2 F600",
+         "G0 X5 Y20 F6000", "G1 X5 Y180 E8 F1500",                          # prime, x = 5 mm
+         "G0 X50 Y50", "G1 X100 Y50 E2.5 F1200",                              # test line
+         "G0 X50 Y60", "G1 X100 Y60 E2.5 F1200",                              # test line
+         "G0 X120 Y100", "G1 X140 Y100 E1", "G1 X140 Y120 E1", "G1 X120 Y120 E1",
+         "G1 X120 Y100 E1",                                                   # closed ring
+         "G0 Z0.4", "G0 X50 Y70", "G1 X100 Y70 E2.5 F1200"]                   # line at z 0.4
+    src = tmp_path / "third.gcode"
+    src.write_text("\n".join(g) + "\n")
+    out = tmp_path / "m.json"
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out)]) == 0
+    kinds = {t.id: t.kind for t in Manifest.load(out).tracks}
+    assert kinds == {0: "prime", 1: "test", 2: "test", 3: "other", 4: "test"}
+    err = capsys.readouterr().err
+    assert "prime line" in err and "closed loop" in err
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks", "1,3-4"]) == 0
+    kinds = {t.id: t.kind for t in Manifest.load(out).tracks}
+    assert [k for k, v in kinds.items() if v == "test"] == [1, 3, 4]
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--z-range-mm", "0.3,0.5"]) == 0
+    assert [t.id for t in Manifest.load(out).tracks if t.kind == "test"] == [4]
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks", "x"]) == 2

@@ -30,6 +30,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--min-test-length-mm", type=float, default=3.0,
                    help="unlabelled extrusion runs shorter than this (mm) are kind 'other' "
                         "(default 3.0)")
+    p.add_argument("--tracks", metavar="IDS",
+                   help="the test tracks by id, e.g. 3-8,12 (ids as in the preview); the rest "
+                        "are 'other'. Default: every extruding run, minus the prime line and "
+                        "closed loops (skirts, rings) when they can be recognised")
+    p.add_argument("--z-range-mm", metavar="LO,HI",
+                   help="only tracks printed at a z in [LO, HI] mm are test tracks")
+    p.add_argument("--keep-all", action="store_true",
+                   help="do not exclude the recognised prime line and closed loops")
     return p
 
 
@@ -51,6 +59,18 @@ def run(args) -> int:
                               layer_height_mm=args.layer_height_mm,
                               min_test_length_mm=args.min_test_length_mm)
     man.gcode = src.name
+    from patterns.plan import parse_id_ranges, select_tracks
+
+    zr = None
+    if args.z_range_mm:
+        try:
+            lo, hi = (float(v) for v in args.z_range_mm.split(","))
+        except ValueError:
+            raise UserError(f"--z-range-mm takes LO,HI in mm, not {args.z_range_mm!r}") from None
+        zr = (min(lo, hi), max(lo, hi))
+    notes = select_tracks(man, parse_id_ranges(args.tracks) if args.tracks else None, zr,
+                          auto_exclude=not (args.keep_all or man.pattern.get("labelled")))
+    man.pattern.setdefault("warnings", []).extend(notes)
     out = Path(args.output) if args.output else manifest_path_for(src)
     try:
         if out.is_dir():
