@@ -118,6 +118,19 @@ def problem_advance(problem, k: int = 0):
     return advance_fn, v_max, width
 
 
+def pa_vs_flow(advance_fn, rows, v_max_mm_s: float, profile: dict, n: int = 10) -> dict:
+    """The linear PA that is right for a start or stop at each filament speed v of the
+    fitted range: K(v) = Preq(v) / v (s), the secant of the steady advance curve (a line
+    that starts from rest at speed v needs the advance Preq(v) = K v). With intervals over
+    posterior draws; flows in mm^3/s = v Af. Used for Orca's adaptive PA table."""
+    v = np.linspace(v_max_mm_s / n, v_max_mm_s, n)
+    K = np.array([np.asarray(advance_fn(r, v), dtype=float) / v for r in rows])
+    af = math.pi * float(profile.get("filament_diameter_mm", 1.75)) ** 2 / 4.0
+    q = np.quantile(K, [0.025, 0.5, 0.975], axis=0)
+    return {"v_mm_s": v.tolist(), "flow_mm3_s": (v * af).tolist(), "pa_s_median": q[1].tolist(),
+            "pa_s_ci95": np.stack([q[0], q[2]], axis=1).tolist(), "v_max_mm_s": float(v_max_mm_s)}
+
+
 def derived_values(param_names, samples, profile: dict, advance_fn=None,
                    v_max_mm_s: float | None = None, n_kalico: int = 100) -> dict:
     """Derived values with intervals from posterior draws (samples (n, k)).
@@ -153,6 +166,7 @@ def derived_values(param_names, samples, profile: dict, advance_fn=None,
     if advance_fn is not None and v_max_mm_s:
         rng = np.random.default_rng(0)
         rows = S[rng.choice(len(S), min(n_kalico, len(S)), replace=False)]
+        out["pa_vs_flow"] = pa_vs_flow(advance_fn, rows, v_max_mm_s, profile)
         for kind in ("tanh", "recipr"):
             fits = [kalico_match(lambda v, r=r: advance_fn(r, v), v_max_mm_s, kind) for r in rows]
             d = {k: summarize([f[k] for f in fits])

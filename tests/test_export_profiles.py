@@ -274,3 +274,27 @@ def test_kalico_nonlinear_pa_into_printer_cfg(tmp_path, fit_json, capsys):
     assert "SET_PRESSURE_ADVANCE ADVANCE=0.0170 OFFSET=0.1200 VELOCITY=1.3000" in capsys.readouterr().out
     assert main(["export", fit_json, "--to", "kalico-recipr"]) == 2      # a linear fit: no match
     assert "needs a nonlinear advance term" in capsys.readouterr().err
+
+
+def test_orca_adaptive_table_from_a_nonlinear_fit(tmp_path, fit_json, capsys):
+    doc = json.loads(Path(fit_json).read_text())
+    doc["derived"]["pa_vs_flow"] = {"flow_mm3_s": [1.0, 5.0], "pa_s_median": [0.06, 0.04],
+                                    "v_mm_s": [0.4, 2.1], "pa_s_ci95": [[0.05, 0.07], [0.03, 0.05]],
+                                    "v_max_mm_s": 2.1}
+    fit = tmp_path / "nl.json"
+    fit.write_text(json.dumps(doc))
+    assert main(["export", str(fit), "--to", "orca-adaptive"]) == 0
+    cap = capsys.readouterr()
+    lines = cap.out.strip().splitlines()
+    assert lines[0] == "0.0600,1.00,1000" and lines[-1] == "0.0400,5.00,10000" and len(lines) == 6
+    assert "covers flows 1.00-5.00 mm^3/s" in cap.err and "no acceleration term" in cap.err
+    preset = tmp_path / "PLA.json"
+    preset.write_text(json.dumps({"type": "filament", "pressure_advance": ["0.02"],
+                                  "adaptive_pressure_advance": ["0"],
+                                  "adaptive_pressure_advance_model": ["0,0,0\n0,0,0"]}))
+    assert main(["export", str(fit), "--to", "orca-adaptive", "--profile", str(preset)]) == 0
+    out = json.loads(preset.read_text())
+    assert out["adaptive_pressure_advance"] == ["1"]
+    rows = [r.split(",") for r in out["adaptive_pressure_advance_model"][0].split("\n")]
+    assert all(len(r) == 3 for r in rows) and float(rows[0][0]) == 0.06     # PA,flow,accel
+    assert main(["export", fit_json, "--to", "orca-adaptive"]) == 2       # a linear fit

@@ -120,3 +120,20 @@ def test_pa_ve_fits_export_the_same_time_constant_as_pa():
     assert d["pressure_advance_s"]["median"] == pytest.approx(0.594, abs=0.002)
     assert d["kisslicer_ve_us"]["median"] == pytest.approx(0.65, abs=1e-9)
     assert d["firmware"]["marlin"].startswith("M900 K0.59")
+
+
+def test_pa_vs_flow_is_the_secant_of_the_advance_curve():
+    """Power law Preq = (tau/n) v_ref (v/v_ref)^n (fit/effects.py nonlinear, v_ref 1 mm/s):
+    K(v) = Preq/v = (tau/n) v^(n-1), falling with flow for n < 1; flows are v * pi D^2/4."""
+    from fit.derived import pa_vs_flow
+
+    tau, n = 0.05, 0.6
+    rows = np.array([[tau], [tau * 1.01], [tau * 0.99]])
+    d = pa_vs_flow(lambda r, v: (r[0] / n) * v ** n, rows, 2.0, {"filament_diameter_mm": 1.75})
+    v = np.array(d["v_mm_s"])
+    assert v[-1] == pytest.approx(2.0)
+    assert np.allclose(d["pa_s_median"], (tau / n) * v ** (n - 1), rtol=1e-9)
+    assert np.all(np.diff(d["pa_s_median"]) < 0)
+    assert d["flow_mm3_s"][-1] == pytest.approx(2.0 * np.pi * 1.75 ** 2 / 4)
+    lo, hi = np.array(d["pa_s_ci95"]).T
+    assert np.all(lo < np.array(d["pa_s_median"])) and np.all(np.array(d["pa_s_median"]) < hi)

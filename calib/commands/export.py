@@ -29,7 +29,7 @@ import numpy as np
 from calib.errors import UserError
 
 TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf", "orca",
-           "prusa", "kisslicer")
+           "orca-adaptive", "prusa", "kisslicer")
 
 
 def add_parser(sub):
@@ -132,7 +132,30 @@ def kalico_values(doc, target: str) -> dict:
             "linearization_velocity": f"{max(d['linearization_velocity_mm_s']['median'], 1e-4):.4f}"}
 
 
+#: accelerations (mm/s^2) of the adaptive table's rows; the physics has no acceleration
+#: term, so every row of one flow carries the same PA (said on stderr)
+ORCA_ACCELS = (1000, 5000, 10000)
+
+
+def orca_adaptive_table(doc) -> tuple[str, str]:
+    """Orca's adaptive_pressure_advance_model text ("PA,flow_mm3_s,accel_mm_s2" lines) from
+    the fit's K(v) = Preq(v)/v curve (fit.derived.pa_vs_flow), and a note on its range."""
+    d = doc.get("derived", {}).get("pa_vs_flow")
+    if not d:
+        raise UserError("this fit has no flow-dependent PA: it needs a nonlinear advance term; "
+                        "fit pa+nonlinear (or --model auto); a linear fit is one value: --to orca")
+    rows = [f"{k:.4f},{q:.2f},{a}" for k, q in zip(d["pa_s_median"], d["flow_mm3_s"])
+            for a in ORCA_ACCELS]
+    note = (f"the table covers flows {d['flow_mm3_s'][0]:.2f}-{d['flow_mm3_s'][-1]:.2f} mm^3/s, the "
+            f"range the test print had; Orca extrapolates outside it, so print a faster test before "
+            f"trusting faster prints. The fit has no acceleration term: the PA is the same at "
+            f"{', '.join(map(str, ORCA_ACCELS))} mm/s^2")
+    return "\n".join(rows), note
+
+
 def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
+    if target == "orca-adaptive":
+        return orca_adaptive_table(doc)[0]
     if target.startswith("kalico-"):
         v = kalico_values(doc, target)
         return (f"[{section}]\n" + "\n".join(f"{k}: {x}" for k, x in v.items())
@@ -168,7 +191,7 @@ def profile_kind(text: str) -> str:
 
 
 #: the file kinds each target may edit, and what to use instead
-ACCEPTS = {"klipper": ("klipper",), "kalico-tanh": ("klipper",), "kalico-recipr": ("klipper",), "orca": ("json",), "kisslicer": ("ini",), "prusa": ("ini",),
+ACCEPTS = {"orca-adaptive": ("json",), "klipper": ("klipper",), "kalico-tanh": ("klipper",), "kalico-recipr": ("klipper",), "orca": ("json",), "kisslicer": ("ini",), "prusa": ("ini",),
            "marlin": ("gcode",), "rrf": ("gcode",), "klipper-gcode": ("gcode",)}
 USE_INSTEAD = {"json": "--to orca", "klipper": "--to klipper", "ini": "--to prusa or --to kisslicer",
                "gcode": "--to marlin, rrf or klipper-gcode"}
@@ -186,6 +209,8 @@ def update_text(text: str, doc, target: str, tool: int = 0, section: str = "extr
     (:func:`calib.klipper_cfg.set_option` follows includes and SAVE_CONFIG)."""
     if target == "orca":
         return update_orca(text, pa_value(doc), tool)
+    if target == "orca-adaptive":
+        return update_orca(text, pa_value(doc), tool, adaptive_model=orca_adaptive_table(doc)[0])
     if target == "prusa":
         return update_prusa(text, f"{pa_value(doc):.4f}", tool)
     if target == "klipper-gcode":
@@ -200,7 +225,7 @@ def update_text(text: str, doc, target: str, tool: int = 0, section: str = "extr
 ORCA_PA_MAX = 2.0      # PrintConfig.cpp: pressure_advance, coFloats, max 2
 
 
-def update_orca(text: str, k: float, tool: int = 0) -> str:
+def update_orca(text: str, k: float, tool: int = 0, adaptive_model: str | None = None) -> str:
     """An OrcaSlicer filament preset (JSON, string arrays, one entry per extruder) with
     pressure_advance[tool] = k and enable_pressure_advance[tool] = 1. Adaptive PA, which
     makes Orca ignore pressure_advance, is switched off for that extruder (said on stderr).
@@ -238,7 +263,10 @@ def update_orca(text: str, k: float, tool: int = 0) -> str:
     put("pressure_advance", f"{k:.4f}")
     put("enable_pressure_advance", "1")
     adaptive = prof.get("adaptive_pressure_advance")
-    if isinstance(adaptive, list) and tool < len(adaptive) and str(adaptive[tool]) == "1":
+    if adaptive_model is not None:        # the table, switched on for this extruder
+        put("adaptive_pressure_advance_model", adaptive_model)
+        put("adaptive_pressure_advance", "1")
+    elif isinstance(adaptive, list) and tool < len(adaptive) and str(adaptive[tool]) == "1":
         put("adaptive_pressure_advance", "0")
         print("calib export: note: adaptive pressure advance was on in this preset, and Orca "
               "then ignores pressure_advance; it is now off for this extruder", file=sys.stderr)
@@ -365,6 +393,8 @@ def run(args) -> int:
         print(f"calib export: warning: {warn}", file=sys.stderr)
     if args.to == "kisslicer":
         print(f"calib export: note: {kisslicer_geometry_note(doc)}", file=sys.stderr)
+    if args.to == "orca-adaptive":
+        print(f"calib export: note: {orca_adaptive_table(doc)[1]}", file=sys.stderr)
     if args.to.startswith("kalico-"):
         print("calib export: note: pressure_advance_model is in Kalico's bleeding-edge-v2 branch, "
               "not in its main branch (checked 2026-11); stock Klipper rejects these options",
