@@ -194,12 +194,19 @@ def handshake(link: Link, boot_timeout_s: float = 20.0, retry_s: float = 2.0) ->
                             "and is this its port?")
 
 
-def safe_stop(link: Link, motors_off: bool = False) -> list[str]:
-    """Send :data:`SAFE_STOP` (and M84 if asked), unnumbered; returns what was sent."""
+def safe_stop(link: Link, motors_off: bool = False, ack_timeout_s: float = 2.0) -> list[str]:
+    """Send :data:`SAFE_STOP` (and M84 if asked), unnumbered, one line per ``ok`` (a
+    firmware's small receive buffer drops lines sent back to back), waiting at most
+    ``ack_timeout_s`` for all acknowledgements together; returns what was sent."""
     sent = []
+    deadline = time.monotonic() + ack_timeout_s   # one budget: a dead link costs 2 s, not 12
     for cmd in SAFE_STOP + ((MOTORS_OFF,) if motors_off else ()):
         try:
             link.write(cmd)
+            while time.monotonic() < deadline:
+                line = link.line()
+                if line is not None and line.lower().startswith("ok"):
+                    break
         except LinkFault:
             break
         sent.append(cmd)
