@@ -515,10 +515,12 @@ def _rms_one(phys, ref, th_row):
 
 
 def optimal_linear(phys: Physics, ref: Reference, *, smooth_time_s: float = 0.0,
-                   free_smooth: bool = False, k_max_s: float | None = None) -> dict:
+                   free_smooth: bool = False, k_max_s: float | None = None,
+                   on_draw=None) -> dict:
     """Per draw, the linear K (s) (and, with ``free_smooth``, the Klipper smooth time in
     [SMOOTH_MIN_S, SMOOTH_MAX_S]) that minimises the RMS width error over all stations.
-    Returns arrays: k_s, smooth_time_s, rms_mm (at the optimum)."""
+    Returns arrays: k_s, smooth_time_s, rms_mm (at the optimum). ``on_draw()`` is called
+    after each draw (a progress bar)."""
     n = len(phys.theta)
     if k_max_s is None:
         tau_hi = float(np.nanmax(phys.tau_s)) if phys.tau_s is not None else 0.05
@@ -548,6 +550,8 @@ def optimal_linear(phys: Physics, ref: Reference, *, smooth_time_s: float = 0.0,
             if r2.fun < f_best or smooth_time_s < SMOOTH_MIN_S:
                 k_best, st_best, f_best = float(r2.x[0] * sc[0]), float(r2.x[1] * sc[1]), float(r2.fun)
         ks[i], sts[i], rms[i] = k_best, st_best, f_best
+        if on_draw is not None:
+            on_draw()
     return {"k_s": ks, "smooth_time_s": sts, "rms_mm": rms}
 
 
@@ -641,7 +645,7 @@ def tested_flow_of(doc) -> tuple | None:
 def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_free: bool = False,
                    kalico_smooth_time_s: float = KLIPPER_SMOOTH_TIME_S,
                    table_smooth_time_s: float = 0.0, n_draws: int = 32, seed: int = 0,
-                   physics: Physics | None = None) -> MatchResult:
+                   physics: Physics | None = None, on_draw=None) -> MatchResult:
     """Simulate ``ref`` with the fit's dynamics (``n_draws`` posterior draws) under: no PA;
     linear PA at tau; the width-optimal linear PA (per draw, exported as the median with a
     95 % interval; Klipper: with the smooth time free when ``smooth_free``); the fit's
@@ -661,7 +665,8 @@ def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_fr
         opt = {"k_s": np.asarray(tau, float), "smooth_time_s": np.full(n, st_fixed), "rms_mm": None}
         optimised = False
     else:
-        opt = optimal_linear(phys, ref, smooth_time_s=st_fixed, free_smooth=smooth_free)
+        opt = optimal_linear(phys, ref, smooth_time_s=st_fixed, free_smooth=smooth_free,
+                             on_draw=on_draw)
         optimised = True
     k_sum, st_sum = summarize_draws(opt["k_s"]), summarize_draws(opt["smooth_time_s"])
     k_exp = k_sum["median"]

@@ -16,6 +16,16 @@ another kind than the target edits is refused with one line:
   prusa    PrusaSlicer/SuperSlicer filament ini: M572 S inside start_filament_gcode
   kisslicer   material .ini: ``matl_viscosity_over_elasticity_us=`` (KISSlicer 2's VE key,
               seed 000; a ``viscoelasticity_us=`` line from older calib versions is replaced)
+
+Width-optimal value (fit/firmware_match.py): for the pressure-advance targets the fitted
+dynamics are simulated on a reference print (the standard move mix, or ``--on
+FILE.gcode``) with the firmware's own compensation, per posterior draw; when the dynamics
+are more than linear PA (shear thinning, back-pressure, offset, thermal ooze) the linear K
+exported is the one that minimises the predicted width error (Klipper targets: with the
+smooth time), with its 95 % interval; a plain pa fit keeps tau, the exact answer. A table
+of the predicted width error at starts/stops/corners (no PA, linear, Kalico, adaptive
+table) and a warning when the reference print's flows go beyond the tested ones go to
+stderr.
 """
 from __future__ import annotations
 
@@ -47,6 +57,10 @@ def add_parser(sub):
     p.add_argument("--tool", type=int, default=0, metavar="N",
                    help="Marlin/RRF: the extruder (M900 T<N>) or drive (M572 D<N>) to set; other "
                         "tools' lines are left alone (default 0)")
+    p.add_argument("--on", metavar="FILE.gcode",
+                   help="choose the PA that minimises the predicted width error of this G-code "
+                        "(a sliced print; its first 90 s of printing) instead of the standard move "
+                        "mix (4 L-shaped lines with starts, stops and corners at 25-150 mm/s)")
     p.add_argument("--force", action="store_true",
                    help="export a fit that is not trustworthy (misfit, value on a prior bound, "
                         "rival modes, not converged); the reasons still go to stderr")
@@ -55,8 +69,13 @@ def add_parser(sub):
 
 FIRMWARE_TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf",
                     "prusa")
-#: Klipper's default pressure_advance_smooth_time (s); the fit does not estimate it
+#: Klipper's default pressure_advance_smooth_time (s), kept when no width match ran
 KLIPPER_SMOOTH_TIME_S = 0.040
+#: targets whose firmware value comes from (or is compared in) the width match
+MATCH_TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf",
+                 "prusa", "orca", "orca-adaptive")
+#: posterior draws simulated per export (each one optimised: ~0.1-0.5 s a draw)
+MATCH_DRAWS = 32
 KISS_VE_KEY = "matl_viscosity_over_elasticity_us"
 
 
@@ -153,6 +172,114 @@ def orca_adaptive_table(doc) -> tuple[str, str]:
     return "\n".join(rows), note
 
 
+def smooth_time_s(doc) -> float:
+    """The Klipper smooth time to print: the width match's (``derived.klipper_smooth_time_s``,
+    set by :func:`with_match`) or Klipper's default."""
+    return float((doc.get("derived") or {}).get("klipper_smooth_time_s", KLIPPER_SMOOTH_TIME_S))
+
+
+def match_smoothing(doc, target: str) -> tuple[float, bool, float]:
+    """(smooth time of the linear search s, smooth time free?, smooth time of the Orca
+    table's firmware s) for ``target``: Klipper/Kalico targets search the smooth time too
+    (SET_PRESSURE_ADVANCE SMOOTH_TIME= / pressure_advance_smooth_time); Marlin LA, RRF and
+    Prusa firmware do not smooth (0); a slicer target (orca) runs on the profile's firmware,
+    whose smooth time it cannot set (Klipper: its default)."""
+    fw = str((doc.get("profile") or {}).get("firmware", "")).lower()
+    fw_st = KLIPPER_SMOOTH_TIME_S if fw == "klipper" else 0.0
+    if target in ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr"):
+        return KLIPPER_SMOOTH_TIME_S, True, fw_st
+    if target in ("orca", "orca-adaptive"):
+        return fw_st, False, fw_st
+    return 0.0, False, fw_st
+
+
+def width_match(doc, target: str, on: str | None = None, n_draws: int = MATCH_DRAWS):
+    """The width match (fit.firmware_match.match_firmware) of ``target`` on the standard
+    move mix or the G-code file ``on``; None (with a note on stderr) when the fit cannot
+    be simulated and no ``--on`` was asked for; UserError for a bad ``--on`` file."""
+    from calib.progress import progress
+    from fit import firmware_match as fm
+    from patterns.profile import profile_from_dict
+
+    try:
+        phys = fm.physics_from_fit(doc, n_draws=n_draws)
+        prof = profile_from_dict(dict(doc.get("profile") or {}), source="fit.json profile")
+    except UserError as exc:
+        if on:
+            raise UserError(f"--on {on}: cannot simulate this fit: {exc}") from None
+        print(f"calib export: note: no width-error check ({exc}); the value is tau", file=sys.stderr)
+        return None
+    if on:
+        path = Path(on)
+        try:
+            text = path.read_text(encoding="utf-8", errors="strict")
+        except FileNotFoundError:
+            raise UserError(f"--on {on}: no such file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UserError(f"--on {on}: cannot read it as G-code text: {exc}") from None
+        man = fm.reference_from_gcode(text, prof, name=on)
+        ref = fm.prepare_reference(man, path.name)
+    else:
+        ref = fm.prepare_reference(fm.standard_reference(prof),
+                                   "the standard move mix (4 L-shaped lines, 25-150 mm/s)")
+    st, free, table_st = match_smoothing(doc, target)
+    bar = progress(total=0 if phys.linear else len(phys.theta), desc="width match", unit="draw",
+                   disable=phys.linear)
+    try:
+        return fm.match_firmware(doc, ref, smooth_time_s=st, smooth_free=free,
+                                 kalico_smooth_time_s=KLIPPER_SMOOTH_TIME_S,
+                                 table_smooth_time_s=table_st, physics=phys,
+                                 on_draw=lambda: bar.update(1))
+    finally:
+        bar.close()
+
+
+def with_match(doc, m) -> dict:
+    """A copy of ``doc`` whose exported PA (and Klipper smooth time) are the width match's."""
+    if m is None or not m.optimised:
+        return doc
+    out = dict(doc)
+    d = dict(out.get("derived") or {})
+    d["pressure_advance_s"] = {**dict(d.get("pressure_advance_s") or {}), **m.k_s}
+    if m.smooth_free:
+        d["klipper_smooth_time_s"] = float(m.smooth_time_s["median"])
+    out["derived"] = d
+    return out
+
+
+def report_match(m, target: str) -> None:
+    """The width match on stderr: the value with its interval, the table, the warnings."""
+    from fit.firmware_match import SMOOTH_MIN_S
+
+    say = lambda t: print(f"calib export: {t}", file=sys.stderr)      # noqa: E731
+    k, st = m.k_s, m.smooth_time_s
+    say(f"width check on {m.reference}, {m.n_draws} posterior draws:")
+    if m.optimised:
+        line = (f"  linear PA that minimises the predicted width error: {k['median']:.4f} s "
+                f"(95 % {k['ci95'][0]:.4f}-{k['ci95'][1]:.4f})")
+        if m.smooth_free:
+            line += (f", smooth time {st['median']:.3f} s (95 % {st['ci95'][0]:.3f}-"
+                     f"{st['ci95'][1]:.3f})")
+        say(line)
+    else:
+        say(f"  the fitted physics is linear PA: the exported value is tau = {k['median']:.4f} s "
+            f"(95 % {k['ci95'][0]:.4f}-{k['ci95'][1]:.4f}), which cancels it exactly")
+    r = m.rms_opt_um
+    say(f"  predicted residual width error with it: {r['median']:.1f} um RMS "
+        f"(95 % {r['ci95'][0]:.1f}-{r['ci95'][1]:.1f})")
+    for ln in m.table_lines():
+        say("  " + ln)
+    if m.smooth_free and st["median"] <= 1.05 * SMOOTH_MIN_S:
+        say(f"note: the shortest smooth time searched ({SMOOTH_MIN_S:.3f} s, half Klipper's default) "
+            "is best for the widths; the model has no extruder motor, so it never sees what a "
+            "shorter window costs (jerk, skipped steps)")
+    for n in m.notes:
+        say(f"note: {n}")
+    w = m.extrapolation_warning()
+    if w:
+        say(("warning: " if m.flow_tested_mm3_s is not None else "note: ") + w)
+
+
 def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
     if target == "orca-adaptive":
         return orca_adaptive_table(doc)[0]
@@ -165,9 +292,11 @@ def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
         return f"{KISS_VE_KEY}={ve_value(doc):.3f}"
     k = f"{pa_value(doc):.4f}"
     extruder = "" if section == "extruder" else f" EXTRUDER={section}"
-    return {"klipper": f"[{section}]\npressure_advance: {k}",
+    st = (f"\npressure_advance_smooth_time: {smooth_time_s(doc):.3f}"
+          if "klipper_smooth_time_s" in (doc.get("derived") or {}) else "")
+    return {"klipper": f"[{section}]\npressure_advance: {k}{st}",
             "klipper-gcode": f"SET_PRESSURE_ADVANCE{extruder} ADVANCE={k} "
-                             f"SMOOTH_TIME={KLIPPER_SMOOTH_TIME_S:.3f}",
+                             f"SMOOTH_TIME={smooth_time_s(doc):.3f}",
             "prusa": f"M572 S{k}",
             "marlin": tool_line("marlin", k, tool),
             "rrf": tool_line("rrf", k, tool),
@@ -214,7 +343,10 @@ def update_text(text: str, doc, target: str, tool: int = 0, section: str = "extr
     if target == "prusa":
         return update_prusa(text, f"{pa_value(doc):.4f}", tool)
     if target == "klipper-gcode":
-        return update_klipper_macro(text, snippet(doc, target, section), f"{pa_value(doc):.4f}", section)
+        st = (f"{smooth_time_s(doc):.3f}" if "klipper_smooth_time_s" in (doc.get("derived") or {})
+              else None)
+        return update_klipper_macro(text, snippet(doc, target, section), f"{pa_value(doc):.4f}",
+                                    section, smooth=st)
     if target == "kisslicer":
         line, pat = snippet(doc, target), rf"^\s*(?:{KISS_VE_KEY}|viscoelasticity_us)\s*=.*$"
         new, n = re.subn(pat, line, text, flags=re.MULTILINE)
@@ -316,10 +448,10 @@ def update_prusa(text: str, k: str, tool: int = 0) -> str:
     return text[:m.start(2)] + value + text[m.end(2):]
 
 
-def update_klipper_macro(text: str, line: str, k: str, section: str) -> str:
+def update_klipper_macro(text: str, line: str, k: str, section: str, smooth: str | None = None) -> str:
     """Slicer start G-code: the ADVANCE= of the SET_PRESSURE_ADVANCE lines for this
     extruder (no EXTRUDER= means the active one, taken as ``extruder``) replaced, else the
-    line appended."""
+    line appended; with ``smooth`` (a width-matched smooth time) their SMOOTH_TIME= too."""
     eol = "\r\n" if "\r\n" in text else "\n"
     lines = text.replace("\r\n", "\n").split("\n")
     hit = False
@@ -334,6 +466,12 @@ def update_klipper_macro(text: str, line: str, k: str, section: str) -> str:
             lines[i] = re.sub(r"(\bADVANCE=)[-+0-9.]+", rf"\g<1>{k}", ln, flags=re.IGNORECASE)
         else:
             lines[i] = ln.rstrip() + f" ADVANCE={k}"
+        if smooth is not None:
+            if re.search(r"\bSMOOTH_TIME=", lines[i], re.IGNORECASE):
+                lines[i] = re.sub(r"(\bSMOOTH_TIME=)[-+0-9.]+", rf"\g<1>{smooth}", lines[i],
+                                  flags=re.IGNORECASE)
+            else:
+                lines[i] = lines[i].rstrip() + f" SMOOTH_TIME={smooth}"
     if not hit:
         while lines and lines[-1] == "":
             lines.pop()
@@ -388,6 +526,33 @@ def run(args) -> int:
 
     doc = load_fit_json(args.fit)
     check_trust(doc, args.force)
+    if args.on and args.to not in MATCH_TARGETS:
+        raise UserError(f"--on chooses a pressure-advance value; --to {args.to} has none "
+                        f"(use one of {', '.join(MATCH_TARGETS)})")
+    # what the target needs from the fit, checked before seconds of simulation
+    if args.to.startswith("kalico-"):
+        kalico_values(doc, args.to)
+    elif args.to == "orca-adaptive":
+        orca_adaptive_table(doc)
+    elif args.to in MATCH_TARGETS:
+        pa_value(doc)
+    path = text = None
+    if args.profile:          # a missing or wrong file is refused before any simulation
+        path = Path(args.profile)
+        if not path.exists():
+            raise UserError(f"profile {path} does not exist")
+        try:
+            from calib.klipper_cfg import read_exact
+
+            text = read_exact(path)      # line endings kept
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UserError(f"cannot read profile {path}: {exc}") from None
+        check_kind(path, text, args.to)
+    if args.to in MATCH_TARGETS:
+        m = width_match(doc, args.to, args.on)
+        if m is not None:
+            report_match(m, args.to)
+            doc = with_match(doc, m)
     warn = firmware_warning(doc, args.to)
     if warn:
         print(f"calib export: warning: {warn}", file=sys.stderr)
@@ -405,17 +570,13 @@ def run(args) -> int:
             print("calib export: note: send M500 after it to keep the value over a reboot "
                   "(Marlin stores it in EEPROM; needs LIN_ADVANCE in the firmware)", file=sys.stderr)
         return 0
-    path = Path(args.profile)
-    if not path.exists():
-        raise UserError(f"profile {path} does not exist")
-    try:
-        from calib.klipper_cfg import read_exact
+    if args.to == "klipper" and "klipper_smooth_time_s" in (doc.get("derived") or {}):
+        from calib.klipper_cfg import set_options
 
-        text = read_exact(path)      # line endings kept
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"cannot read profile {path}: {exc}") from None
-    check_kind(path, text, args.to)
-    if args.to == "klipper":
+        changes = set_options(path, args.section, {
+            "pressure_advance": f"{pa_value(doc):.4f}",
+            "pressure_advance_smooth_time": f"{smooth_time_s(doc):.3f}"})
+    elif args.to == "klipper":
         from calib.klipper_cfg import set_option
 
         changes = set_option(path, args.section, "pressure_advance", f"{pa_value(doc):.4f}")

@@ -108,6 +108,12 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     res.derived = derived_values(res.param_names, res.samples, res.profile,
                                  advance_fn=adv[0] if adv else None,
                                  v_max_mm_s=adv[1] if adv else None)
+    from fit.firmware_match import tested_flow_range
+
+    # `calib export` warns when a reference print goes beyond the flows the test covered
+    flows = tested_flow_range(problem)
+    if flows:
+        res.derived["tested_flow_mm3_s"] = flows
     from fit.trust import assess, residual_structure
 
     res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
