@@ -687,14 +687,16 @@ def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_fr
             settings.append(Setting(kind, float(km["pressure_advance_s"]["median"]), kalico_smooth_time_s,
                                     float(km["offset_mm"]["median"]),
                                     max(float(km["linearization_velocity_mm_s"]["median"]), 1e-4)))
-            labels.append(f"Kalico {kind}")
+            labels.append(f"Kalico {kind}" + (f", smooth {kalico_smooth_time_s:.3f} s"
+                                               if kalico_smooth_time_s > 0 else ""))
     pv = d.get("pa_vs_flow")
     if pv and pv.get("flow_mm3_s"):
         fq = [float(x) for x in pv["flow_mm3_s"]][:N_TABLE]
         kk = [float(x) for x in pv["pa_s_median"]][:N_TABLE]
         settings.append(Setting("table", smooth_time_s=table_smooth_time_s,
                                 table_flow_mm3_s=tuple(fq), table_k_s=tuple(kk)))
-        labels.append("Orca adaptive table")
+        labels.append("Orca adaptive table" + (f", smooth {table_smooth_time_s:.3f} s"
+                                               if table_smooth_time_s > 0 else ""))
     errs = width_errors_mm(phys, ref, _theta_for(phys, settings))
     rows = {}
     for i, lab in enumerate(labels):
