@@ -56,6 +56,9 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     reg = register(gray, manifest, points=points)
     meas = measure_widths(gray, manifest, reg, color=color)
     table = meas.table
+    cal = apparent_width_calibration(gray, color, manifest, reg)
+    if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
+        table.width_mm = np.where(table.width_mm > 0, table.width_mm - cal.offset_mm, table.width_mm)
     valid_frac = float(np.mean(table.valid)) if len(table) else 0.0
     # Registration from points has no corner misfit: its residual is the RMS offset of
     # the measured bead centres from the registered centre lines (robust: central 90 %).
@@ -66,7 +69,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         reg.track_offset_rms_mm = float(np.sqrt(np.mean(c ** 2)))
     if not np.isfinite(reg.residual_mm):
         reg.residual_mm = reg.track_offset_rms_mm
-    warnings = list(reg.warnings)
+    warnings = list(reg.warnings) + list(cal.warnings)
     if valid_frac < 0.7:
         warnings.append(f"only {valid_frac:.0%} of the samples are valid; check the QA overlay")
     flags = Counter(f for f in table.flag if f)
@@ -83,6 +86,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
         "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
         "blur_plane_px": [float(v) for v in meas.blur_plane_px],
+        "apparent_width": cal.to_dict(),
         "per_track": {str(t): {"valid": int((ok & (table.track == t)).sum()),
                                "samples": int((table.track == t).sum()),
                                "width_mm_median": (float(np.median(table.width_mm[ok & (table.track == t)]))
@@ -106,6 +110,21 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         from measure.overlay import draw_overlay, save_overlay
         save_overlay(overlay_path, draw_overlay(color, manifest, reg, meas))
     return result
+
+
+def apparent_width_calibration(gray, color, manifest, reg):
+    """measure/calibrate.py on the print's width-reference prime line, measured like the
+    test tracks; an unapplied WidthCalibration saying why when the print has none."""
+    from measure.calibrate import WidthCalibration, calibrate, reference_stations
+
+    ref = reference_stations(manifest)
+    if ref is None:
+        return WidthCalibration(note="no apparent-width calibration: the print has no width-reference prime "
+                                     "line (third-party G-code?); widths are apparent widths")
+    smp, section = ref
+    m = measure_widths(gray, smp, reg, manifest=manifest, color=color)
+    h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
+    return calibrate(m.table.width_mm, m.table.valid, smp.width_nominal_mm, section, height_mm=h)
 
 
 def save_summary(path, summary: dict) -> None:

@@ -186,6 +186,93 @@ def _track_coverage(X, Y, seg, segw, bbox, starts, track_sigma, alpha):  # pragm
                     alpha[j, i] = min(1.0, alpha[j, i] + a)
 
 
+@njit(parallel=True, cache=True)
+def _track_profile(X, Y, seg, segw, bbox, starts, track_h, aa_mm, hv, p_spec, ambient,
+                   cov, thick, shade, spec, tmax):  # pragma: no cover - numba
+    """Beads with their physical cross-section (measure/phenomena.py "profile").
+
+    The slicer's rounded rectangle (fit/geometry.py): flat crown of half-width w/2 - r
+    and elliptical flanks of lateral radius r = min(h/2, w/2) and height h, seen from
+    above. Per sub-pixel: ``cov`` footprint coverage (a hard edge at w/2, box-filtered
+    over ``aa_mm`` = one sub-pixel), ``thick`` summed plastic thickness (mm), and of the
+    topmost bead: ``shade`` = ambient + (1 - ambient) n_z (Lambert, overhead diffuse
+    light) and ``spec`` = max(0, n . hv)^p_spec (Blinn-Phong); ``tmax`` its thickness.
+    """
+    for t in range(len(starts) - 1):
+        k0, k1 = starts[t], starts[t + 1]
+        if k1 <= k0:
+            continue
+        i0 = bbox[k0:k1, 0].min()
+        i1 = bbox[k0:k1, 1].max()
+        j0 = bbox[k0:k1, 2].min()
+        j1 = bbox[k0:k1, 3].max()
+        if i1 <= i0 or j1 <= j0:
+            continue
+        E = np.full((j1 - j0, i1 - i0), -1e9, dtype=np.float32)
+        Wd = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
+        OX = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
+        OY = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
+        for k in range(k0, k1):
+            ax, ay, bx, by = seg[k, 0], seg[k, 1], seg[k, 2], seg[k, 3]
+            w0, w1 = segw[k, 0], segw[k, 1]
+            dx = bx - ax
+            dy = by - ay
+            L2 = dx * dx + dy * dy
+            for j in range(bbox[k, 2], bbox[k, 3]):
+                for i in range(bbox[k, 0], bbox[k, 1]):
+                    px = X[j, i] - ax
+                    py = Y[j, i] - ay
+                    tp = (px * dx + py * dy) / L2 if L2 > 0 else 0.0
+                    tp = min(1.0, max(0.0, tp))
+                    ex = px - tp * dx
+                    ey = py - tp * dy
+                    w = w0 + tp * (w1 - w0)
+                    dist = math.sqrt(ex * ex + ey * ey)
+                    e = 0.5 * w - dist
+                    if e > E[j - j0, i - i0]:
+                        E[j - j0, i - i0] = e
+                        Wd[j - j0, i - i0] = w
+                        if dist > 1e-9:
+                            OX[j - j0, i - i0] = ex / dist
+                            OY[j - j0, i - i0] = ey / dist
+                        else:
+                            OX[j - j0, i - i0] = 0.0
+                            OY[j - j0, i - i0] = 0.0
+        h = track_h[t]
+        aa = aa_mm[t]
+        for j in prange(j0, j1):
+            for i in range(i0, i1):
+                e = E[j - j0, i - i0]
+                if e <= -0.5 * aa:
+                    continue
+                w = Wd[j - j0, i - i0]
+                c = min(1.0, e / aa + 0.5)
+                d = max(0.0, 0.5 * w - e)
+                rl = min(0.5 * h, 0.5 * w)
+                a = 0.5 * w - rl
+                if d <= a:
+                    tk = h
+                    nh = 0.0
+                    nz = 1.0
+                else:
+                    u = min(1.0, (d - a) / rl)
+                    q = math.sqrt(max(0.0, 1.0 - u * u))
+                    tk = h * q
+                    gx = u / rl
+                    gz = q / (0.5 * h)
+                    nn = math.sqrt(gx * gx + gz * gz)
+                    nh = gx / nn
+                    nz = gz / nn
+                tk *= c
+                cov[j, i] = min(1.0, cov[j, i] + c)
+                thick[j, i] += tk
+                if tk > tmax[j, i]:
+                    tmax[j, i] = tk
+                    shade[j, i] = ambient + (1.0 - ambient) * nz
+                    ndoth = nh * (OX[j - j0, i - i0] * hv[0] + OY[j - j0, i - i0] * hv[1]) + nz * hv[2]
+                    spec[j, i] = max(0.0, ndoth) ** p_spec
+
+
 # =====================================================================================
 # geometry preparation
 # =====================================================================================
@@ -244,15 +331,30 @@ def _track_pieces(track, widths: WidthTable | None, step_mm: float = 0.25, turn_
 
 
 def _segments(manifest: Manifest, widths: WidthTable | None, camera: Camera, ss: int,
-              edge_mm: float | None):
-    seg, segw, sig, starts = [], [], [], [0]
+              edge_mm: float | None, deposits=None):
+    """Segments of every bead piece, their sub-pixel windows, and per piece (s_e, h).
+
+    ``deposits`` = (track_pieces, strings) of :func:`measure.phenomena.deposit_pieces`:
+    non-test tracks drawn at their deposited widths, travel strings added (h = d).
+    """
+    track_over, strings = deposits if deposits is not None else ({}, [])
+    seg, segw, sig, hs, starts = [], [], [], [], [0]
+
+    def add(sg, sw, h):
+        seg.append(sg)
+        segw.append(sw)
+        starts.append(starts[-1] + len(sg))
+        sig.append(edge_mm if edge_mm is not None else EDGE_SOFTNESS_PER_HEIGHT * max(h, 0.05))
+        hs.append(max(h, 0.02))
+
     for tr in manifest.tracks:
         h = float(np.nanmean(tr.height_mm)) if len(tr.height_mm) else 0.2
-        for sg, sw in _track_pieces(tr, widths, step_mm=0.25 if tr.kind == "test" else 1.0):
-            seg.append(sg)
-            segw.append(sw)
-            starts.append(starts[-1] + len(sg))
-            sig.append(edge_mm if edge_mm is not None else EDGE_SOFTNESS_PER_HEIGHT * max(h, 0.05))
+        pieces = track_over[tr.id] if tr.id in track_over else \
+            _track_pieces(tr, widths, step_mm=0.25 if tr.kind == "test" else 1.0)
+        for sg, sw in pieces:
+            add(sg, sw, h)
+    for sg, sd, d_mean in strings:
+        add(sg, sd, d_mean)
     if not seg:
         return None
     seg = np.vstack(seg)
@@ -273,7 +375,7 @@ def _segments(manifest: Manifest, widths: WidthTable | None, camera: Camera, ss:
     j0 = np.clip(np.floor(sub[..., 1].min(axis=1)) - 2, 0, H * ss).astype(np.int64)
     j1 = np.clip(np.ceil(sub[..., 1].max(axis=1)) + 3, 0, H * ss).astype(np.int64)
     bbox = np.column_stack([i0, np.maximum(i1, i0), j0, np.maximum(j1, j0)])
-    return seg, segw, bbox, np.asarray(starts, dtype=np.int64), sig
+    return seg, segw, bbox, np.asarray(starts, dtype=np.int64), sig, np.asarray(hs, dtype=float)
 
 
 def _aruco_bits(marker_id: int, dictionary: str) -> np.ndarray:
@@ -341,8 +443,13 @@ def _pattern_rect(manifest: Manifest) -> np.ndarray:
     return np.concatenate([P.min(axis=0), P.max(axis=0)])
 
 
-def _background(manifest: Manifest, camera: Camera, Xc, Yc, plate: str, rng, clutter: bool):
-    """Reflectance image (H, W, 3) float32 of everything behind the plastic."""
+def _background(manifest: Manifest, camera: Camera, Xc, Yc, plate: str, rng, clutter: bool,
+                logos_inside: bool = False, logo_rng=None):
+    """Reflectance image (H, W, 3) float32 of everything behind the plastic.
+
+    ``logos_inside``: plate print (text, a logo ring) also under the pattern itself, drawn
+    with ``logo_rng`` so the rest of the scene does not change.
+    """
     W, H = camera.image_size
     pr = _pattern_rect(manifest)
     excl = pr + np.array([-4.0, -4.0, 4.0, 4.0])           # keep clutter off the pattern
@@ -404,9 +511,12 @@ def _background(manifest: Manifest, camera: Camera, Xc, Yc, plate: str, rng, clu
         tex = base[None, None, :] * (1.0 + 0.015 * blot + 0.004 * rng.standard_normal((bh, bw)).astype(np.float32))[..., None]
         ink = (0.40, 0.40, 0.42)
     img = img * (1 - mask[..., None]) + tex * mask[..., None]
-    if clutter:
+    if clutter or logos_inside:
         ink_mask = np.zeros((bh, bw), np.uint8)      # cv2.putText draws on 8-bit images only
-        _draw_clutter(ink_mask, plate_rect, excl, rng, ipt, ppmm)
+        if clutter:
+            _draw_clutter(ink_mask, plate_rect, excl, rng, ipt, ppmm)
+        if logos_inside:
+            _draw_plate_print(ink_mask, pr, logo_rng, ipt, ppmm)
         m = (ink_mask.astype(np.float32) / 255.0)[..., None]
         img = img * (1 - m) + np.asarray(ink, np.float32)[None, None, :] * m
     maps = ((Xc - lo[0]) * ppmm).astype(np.float32), ((hi[1] - Yc) * ppmm).astype(np.float32)
@@ -450,6 +560,22 @@ def _draw_clutter(mask, plate_rect, excl, rng, ipt, ppmm):
             cv2.line(mask, ipt(*p[0]), ipt(*p[1]), int(rng.integers(60, 200)), 1, cv2.LINE_AA, 4)
 
 
+def _draw_plate_print(mask, rect, rng, ipt, ppmm):
+    """Printed plate text and a logo ring across the pattern area (under the plastic)."""
+    x0, y0, x1, y1 = rect
+    for _ in range(int(rng.integers(2, 5))):
+        word = str(rng.choice(_PLATE_WORDS))
+        height_mm = float(rng.uniform(2.5, 6.0))
+        scale = height_mm * ppmm / 22.0
+        thick = max(1, int(round(height_mm * ppmm / 10)))
+        c, r = ipt(rng.uniform(x0, max(x0 + 1, x1 - 20)), rng.uniform(y0 + height_mm, y1))
+        cv2.putText(mask, word, (c // 16, r // 16), cv2.FONT_HERSHEY_SIMPLEX, scale, int(rng.integers(120, 256)),
+                    thick, cv2.LINE_AA)
+    c, r = ipt(rng.uniform(x0, x1), rng.uniform(y0, y1))
+    rad = int(round(rng.uniform(4.0, 12.0) * ppmm * 16))
+    cv2.circle(mask, (c, r), rad, 200, max(1, int(round(0.8 * ppmm))), cv2.LINE_AA, 4)
+
+
 # =====================================================================================
 # the renderer
 # =====================================================================================
@@ -467,7 +593,8 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
            plastic: str = "opaque", seed: int = 0, lighting: Lighting | None = None,
            noise: float = 1.0, blur_px: float | None = None, jpeg_quality: int | None = None,
            clutter: bool = True, supersample: int = 2, edge_mm: float | None = None,
-           model: dict | None = None, progress: bool = False) -> Rendered:
+           model: dict | None = None, progress: bool = False, realism=None,
+           deposits=None) -> Rendered:
     """Render ``manifest`` as ``camera`` sees it; test tracks at ``widths`` (mm).
 
     widths        true widths along the test tracks (e.g. ``print_virtual(...).table``);
@@ -483,6 +610,11 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     supersample   sub-pixels per pixel side (pixel-area integration of the coverage)
     edge_mm       edge softness s_e (mm) of eq. (1); default 0.15 x layer height
     model         {"spec": ..., "values": {...}} recorded in the truth
+    realism       :class:`measure.phenomena.Realism` (or its text: "all", "profile,grain");
+                  None = none. With "profile" the true width is the footprint (the bead's
+                  widest point), no longer the 50 % point of eq. (1)
+    deposits      (track_pieces, strings) from :func:`measure.phenomena.deposit_pieces`,
+                  used by the "strings" and "raster_gaps" phenomena
     """
     if plate not in ("dark", "light"):
         raise ValueError(f"plate must be 'dark' or 'light', not {plate!r}")
@@ -490,10 +622,26 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         raise ValueError(f"plastic must be 'opaque' or 'translucent', not {plastic!r}")
     from calib.progress import progress as progress_bar
 
+    from measure import phenomena as ph
+
+    if not isinstance(realism, ph.Realism):
+        realism = ph.Realism.parse(realism if realism is not None else "none", camera.kind)
     rng = np.random.default_rng(seed)
+    # the phenomena draw from their own stream: switching one on does not reshuffle the rest
+    prng = np.random.default_rng([int(seed), 11])
+    if lighting is None and "light" in realism:
+        g = prng.uniform(0.25, 0.40, 2) * prng.choice([-1.0, 1.0], 2)
+        lighting = Lighting(exposure=225.0, gradient=(float(g[0]), float(g[1])), vignetting=0.45,
+                            glare=float(prng.uniform(15.0, 25.0)))
     lighting = lighting or Lighting.for_camera(camera.kind, rng)
     if blur_px is None:
         blur_px = 1.2 if camera.kind == "phone" else 0.7
+    if jpeg_quality is None and "jpeg" in realism:
+        jpeg_quality = realism.jpeg_quality
+    dep = None
+    if deposits is not None:
+        tp, strings = deposits
+        dep = (tp if "raster_gaps" in realism else {}, strings if "strings" in realism else [])
     W, H = camera.image_size
     ss = int(supersample)
     bar = progress_bar(total=5, desc="render", unit="step", disable=not progress, leave=False)
@@ -504,34 +652,76 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     Ys = np.empty_like(Xs)
     unproject_grid(Hinv, cx, cy, camera.f_px, camera.k1, camera.k2, W, H, ss, Xs, Ys)
     bar.update()
-    # 2. plastic coverage, exact (eq. 1), then pixel-area average
+    # 2. plastic coverage, exact (eq. 1) or the physical profile, then pixel-area average
     alpha_s = np.zeros((H * ss, W * ss), np.float32)
-    prep = _segments(manifest, widths, camera, ss, edge_mm)
-    if prep is not None:
-        seg, segw, bbox, starts, sig = prep
+    prep = _segments(manifest, widths, camera, ss, edge_mm, dep)
+    shade_s = spec_s = None
+    attenuation = None
+    if prep is not None and "profile" in realism:
+        seg, segw, bbox, starts, sig, hs = prep
+        ppmm = float(np.median(camera.px_per_mm(seg[:, :2])))
+        aa = np.full(len(hs), 1.0 / (ss * ppmm))
+        hv = ph.half_vector(camera.kind, prng)
+        p_spec = float(prng.uniform(40.0, 80.0))
+        thick = np.zeros_like(alpha_s)
+        shade_s = np.zeros_like(alpha_s)
+        spec_s = np.zeros_like(alpha_s)
+        tmax = np.zeros_like(alpha_s)
+        _track_profile(Xs, Ys, seg, segw, bbox, starts, hs, aa, hv, p_spec, realism.ambient,
+                       alpha_s, thick, shade_s, spec_s, tmax)
+        del tmax
+        if "translucent" in realism:
+            attenuation = realism.attenuation_mm or float(prng.uniform(0.08, 0.15))
+            alpha_s = alpha_s * (1.0 - np.exp(-thick / np.float32(attenuation)))
+        del thick
+        shade_s *= alpha_s                 # plastic radiance weight: coverage x Lambert shade
+        spec_s *= alpha_s if "glare" in realism else 0.0
+    elif prep is not None:
+        seg, segw, bbox, starts, sig, hs = prep
         _track_coverage(Xs, Ys, seg, segw, bbox, starts, sig, alpha_s)
     fid_sigma = edge_mm if edge_mm is not None else EDGE_SOFTNESS_PER_HEIGHT * 0.2
-    _fiducial_cells(manifest, Xs, Ys, camera, ss, fid_sigma, alpha_s)
-    del Xs, Ys
-    alpha = alpha_s.reshape(H, ss, W, ss).mean(axis=(1, 3)) if ss > 1 else alpha_s
+    fid_alpha = np.zeros_like(alpha_s) if shade_s is not None else alpha_s
+    _fiducial_cells(manifest, Xs, Ys, camera, ss, fid_sigma, fid_alpha)
+    if shade_s is not None:               # unprinted marker cells: flat, unshaded
+        shade_s += fid_alpha
+        alpha_s = np.minimum(1.0, alpha_s + fid_alpha)
+        shade_s = np.minimum(shade_s, 1.0)
+    del Xs, Ys, fid_alpha
+
+    def pixel_area(a):
+        return a.reshape(H, ss, W, ss).mean(axis=(1, 3)) if ss > 1 else a
+
+    alpha = pixel_area(alpha_s)
     del alpha_s
+    radiance = pixel_area(shade_s) if shade_s is not None else alpha
+    specular = pixel_area(spec_s) if spec_s is not None else None
+    del shade_s, spec_s
     bar.update()
     # 3. background seen through the camera
     Xc = np.empty((H, W), np.float32)
     Yc = np.empty_like(Xc)
     unproject_grid(Hinv, cx, cy, camera.f_px, camera.k1, camera.k2, W, H, 1, Xc, Yc)
-    back = _background(manifest, camera, Xc, Yc, plate, rng, clutter)
+    back = _background(manifest, camera, Xc, Yc, plate, rng, clutter,
+                       logos_inside="logos" in realism, logo_rng=prng)
+    if "grain" in realism:
+        back *= ph.pei_grain(Xc, Yc, seed=int(seed))[..., None]
     del Xc, Yc
     bar.update()
     # 4. compose (linear in coverage), light, blur
     col, opacity = _plastic(plate, plastic, rng)
+    if attenuation is not None:
+        opacity = 1.0                      # the thickness sets the opacity (Beer-Lambert)
     a = (opacity * alpha)[..., None]
-    img = back * (1.0 - a) + col[None, None, :] * a
+    img = back * (1.0 - a) + col[None, None, :] * (opacity * radiance)[..., None]
     del back, a
     img *= _light_field(W, H, lighting, rng)[..., None]
+    if specular is not None:
+        img += (realism.glare_dn * specular)[..., None]
     if lighting.glare > 0:
         img += _glare(W, H, lighting.glare, rng)[..., None]
-    if blur_px > 0:
+    if "defocus" in realism:
+        img = ph.varying_blur(img, ph.defocus_map(W, H, prng, lo_px=blur_px * 0.8, hi_px=blur_px * 3.0))
+    elif blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     bar.update()
     # 5. sensor noise: shot (Poisson ~ Gaussian, variance DN * 255 / full well) + read
@@ -552,9 +742,12 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
                 "seed": int(seed), "noise": float(noise), "blur_px": float(blur_px),
                 "jpeg_quality": jpeg_quality, "clutter": bool(clutter), "supersample": ss,
                 "edge_mm": edge_mm, "edge_softness_per_height": EDGE_SOFTNESS_PER_HEIGHT,
+                "realism": realism.label, "attenuation_mm": attenuation,
                 "lighting": {"exposure": lighting.exposure, "gradient": list(map(float, lighting.gradient)),
                              "vignetting": lighting.vignetting, "glare": lighting.glare},
-                "width_definition": "distance between the 50 % coverage points of the bead edges"}
+                "width_definition": ("footprint: the bead's widest point (physical cross-section)"
+                                     if "profile" in realism else
+                                     "distance between the 50 % coverage points of the bead edges")}
     model = model or {}
     truth = ScanTruth(camera=camera, widths=table, model_spec=str(model.get("spec", "")),
                       values=dict(model.get("values", {})), settings=settings)

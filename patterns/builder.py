@@ -25,6 +25,8 @@ from patterns.manifest import Manifest, Track
 from patterns.profile import load_profile
 from patterns.ruler import plan_ruler, ruler_height_mm
 
+#: Duration (s) of each constant-width section of the width-reference prime line.
+REFERENCE_SECTION_S = 5.0
 FURNITURE_SPEED_MM_S = 20.0     # fiducials, labels, ruler: slow enough to stick on layer 1
 HOP_SPEED_MM_S = 60.0           # zero-extrusion hops between strokes of one track
 LABEL_HEIGHT_MM = 3.5
@@ -220,10 +222,28 @@ class PatternBuilder:
             self.label(title, (0.5 * (x0 + x1), y1 - f + 1.0), height_mm=3.5, anchor="center")
 
     def frame_prime(self, frame: Frame) -> int:
-        """Prime line along the top band, between the top markers."""
+        """Prime line along the top band, between the top markers, printed as the scan's
+        width reference (measure/calibrate.py): three sections of commanded width 1, 2.5
+        and 1 nozzle diameters, each at least REFERENCE_SECTION_S long at a slow speed, so
+        the flow has settled over the last part of each (the apparent-width calibration
+        fits apparent = g w + b0 there; two widths separate the scan's edge offset b0 from
+        a flow/scale factor g)."""
         x0, _, x1, y1 = frame.rect_mm
         f = frame.fiducial_mm
-        return self.prime_line((x0 + f + 4.0, y1 - 3.0), (x1 - f - 4.0, y1 - 3.0))
+        p0 = np.array([x0 + f + 4.0, y1 - 3.0])
+        p1 = np.array([x1 - f - 4.0, y1 - 3.0])
+        L = float(np.linalg.norm(p1 - p0))
+        dn = self.profile.nozzle_diameter_mm
+        widths = [1.0 * dn, 2.5 * dn, 1.0 * dn]
+        v = float(min(15.0, L / len(widths) / REFERENCE_SECTION_S))
+        cuts = np.linspace(0.0, 1.0, len(widths) + 1)
+        pts = p0 + cuts[:, None] * (p1 - p0)
+        sections = [[float(cuts[i] * L), float(cuts[i + 1] * L), float(w)] for i, w in enumerate(widths)]
+        tid = self.begin("prime", p0, params={"role": "width_reference", "sections_mm": sections,
+                                               "speed_mm_s": v})
+        self.extrude(pts, widths, v)
+        self.end()
+        return tid
 
     # -- output -----------------------------------------------------------------
     def build(self, *, plan: bool = True) -> tuple[str, Manifest]:

@@ -46,6 +46,8 @@ def run(args) -> int:
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "
           f"registration residual {res.registration.residual_mm:.3f} mm ({res.registration.method})",
           file=sys.stderr)
+    if s.get("apparent_width", {}).get("note"):
+        print(f"calib measure: {s['apparent_width']['note']}", file=sys.stderr)
     for w in s["warnings"]:
         print(f"calib measure: warning: {w}", file=sys.stderr)
     return 0

@@ -44,10 +44,19 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--jpeg-quality", type=int, default=None,
                    help="JPEG quality for .jpg output (default 85 for phone photos, 95 otherwise)")
     p.add_argument("--no-clutter", action="store_true", help="no plate logos, scratches or cutting mat")
+    p.add_argument("--realism", default="default", metavar="LIST",
+                   help="what real prints and cameras do that the measurement does not assume: "
+                        "'all', 'none', or a comma list of " + ", ".join(_phenomena()) +
+                        " (measure/phenomena.py); default: all for --camera phone, none for flatbed")
     p.add_argument("--seed", type=int, default=0, help="random seed for the picture (default 0)")
     p.add_argument("--effects", default=None, help="Python file with user effects named in TRUTH.toml")
     p.add_argument("--plot", action="store_true", help="also write SCAN.widths.png: true vs commanded widths")
     return p
+
+
+def _phenomena():
+    from measure.phenomena import PHENOMENA
+    return PHENOMENA
 
 
 def camera_for(manifest, camera_kind: str, *, dpi: float = 600.0, tilt_deg: float = 25.0, seed: int = 0,
@@ -76,11 +85,13 @@ def simulate_scan(manifest, truth_spec: str, values: dict, camera_kind: str = "f
                   profile=None, extra_effects=(), dpi: float = 600.0, tilt_deg: float = 25.0,
                   plate: str = "dark", plastic: str = "opaque", seed: int = 0,
                   jpeg_quality: int | None = None, clutter: bool = True, progress: bool = False,
-                  **render_kw):
+                  realism=None, **render_kw):
     """Print ``manifest`` on the virtual printer (``truth_spec`` + ``values``) and picture it.
 
     Returns (Rendered, VirtualPrint). ``jpeg_quality`` defaults to 85 for a phone and to
-    lossless for a flatbed. Extra keywords go to :func:`measure.render.render`.
+    lossless for a flatbed. ``realism``: :class:`measure.phenomena.Realism` or its text
+    ("default": all phenomena for a phone, none for a flatbed). Extra keywords go to
+    :func:`measure.render.render`.
     """
     from fit.model import build_model
     from fit.virtual import print_virtual
@@ -93,9 +104,15 @@ def simulate_scan(manifest, truth_spec: str, values: dict, camera_kind: str = "f
     camera = camera_for(manifest, camera_kind, dpi=dpi, tilt_deg=tilt_deg, seed=seed)
     if jpeg_quality is None and camera_kind == "phone":
         jpeg_quality = 85
+    from measure.phenomena import NEEDS_PHYSICS, Realism, deposit_pieces
+
+    if not isinstance(realism, Realism):
+        realism = Realism.parse(realism, camera_kind)
+    deposits = deposit_pieces(manifest, vp) if set(NEEDS_PHYSICS) & realism.enabled else None
     rendered = render(manifest, vp.table, camera, plate=plate, plastic=plastic, seed=seed,
                       jpeg_quality=jpeg_quality, clutter=clutter, progress=progress,
-                      model={"spec": truth_spec, "values": values}, **render_kw)
+                      model={"spec": truth_spec, "values": values}, realism=realism,
+                      deposits=deposits, **render_kw)
     rendered.truth.extras.update({"commanded_mm3": vp.commanded_mm3, "extruded_mm3": vp.extruded_mm3,
                                   "dribble_mm3": vp.dribble_mm3, "blobs": len(vp.blobs)})
     return rendered, vp
@@ -140,11 +157,17 @@ def run(args) -> int:
         from fit.effects import load_effects_file
         extra = load_effects_file(args.effects)
     spec, values, _extras = load_truth(args.truth, profile if profile is not None else manifest.printer, extra)
-    jq = args.jpeg_quality if args.jpeg_quality is not None else (85 if args.camera == "phone" else 95)
+    from measure.phenomena import Realism
+    try:
+        realism = Realism.parse(args.realism, args.camera)
+    except ValueError as exc:
+        raise UserError(f"--realism: {exc}") from None
+    jq = args.jpeg_quality if args.jpeg_quality is not None else \
+        (realism.jpeg_quality if "jpeg" in realism else 85 if args.camera == "phone" else 95)
     rendered, vp = simulate_scan(manifest, spec, values, args.camera, profile=profile, extra_effects=extra,
                                  dpi=args.dpi, tilt_deg=args.tilt, plate=args.plate, plastic=args.plastic,
                                  seed=args.seed, jpeg_quality=jq if ext == ".jpg" else None,
-                                 clutter=not args.no_clutter, progress=True)
+                                 clutter=not args.no_clutter, progress=True, realism=realism)
     write_image(out, rendered)
     rendered.truth.image = out.name
     tpath = save_scan_truth(truth_path_for(out), rendered.truth)

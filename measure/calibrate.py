@@ -1,0 +1,166 @@
+"""Apparent vs physical width: a per-scan calibration from the print's own width reference.
+
+What a picture shows is an *apparent* width: the half-contrast width of the bead's image.
+The physical width (the footprint, what the physics predicts) differs by an edge offset
+that depends on what the measurement cannot know in advance: the bead's shaded flanks,
+translucent plastic letting the plate through at its thin edges, specular light, the
+plate's colour. On renders with a physical bead profile (measure/phenomena.py) the
+offset is -30 to -50 um per bead; on real white PLA it changed sign between prints
+(issue #10). It is the same at every bead of one scan whose flanks are alike (w > h:
+the flank is a half-round of the layer height whatever the width), so it is an
+additive offset b0, while a flow error or a scan-scale error multiplies (g).
+
+The reference: the pattern's prime line (patterns/builder.py ``frame_prime``) is printed
+slowly in sections of two commanded widths w_k (1 and 2.5 nozzle diameters), each long
+enough for the flow to settle. Over the settled part of each section (>= SETTLE_S after
+the width last changed) the apparent width is modelled as
+
+    a = g * w_k + b0                                                        (1)
+
+fitted by weighted least squares to the section medians (weights from each section's
+spread, with stations 4 apart counted as independent: the profile windows overlap).
+Two widths determine g (flow x scale: reported, *not* applied, it is the printer's flow
+and the fit's ``flow_gain``) and b0 (the scan's edge offset: subtracted from every
+measured width). Its sd becomes the prior width of the fit's ``scan_bias.b0_mm``
+(fit/effects.py ScanBias), so the fit neither trusts the offset more than measured nor
+lets it masquerade as back-pressure.
+
+Limits: a flow still settling at the end of a section (a time constant tau above
+~SETTLE_S / 4) biases b0 by ~exp(-SETTLE_S / tau) of the width step; the fit reports a
+trend within a section as a warning. G-code without a width-reference prime line
+(third-party prints) gets no calibration, and the summary says so.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from patterns.manifest import Manifest, Samples, sample_points
+
+#: Stations count only this long (s) after the commanded width last changed.
+SETTLE_S = 3.0
+#: Fewest valid stations per section for it to count.
+MIN_STATIONS = 12
+#: Profile windows of neighbouring stations overlap: one in this many is independent.
+STATIONS_PER_INDEPENDENT = 4
+
+
+@dataclass
+class WidthCalibration:
+    """Result of the apparent-width calibration of one scan (mm unless stated).
+
+    offset_mm       b0 of eq. (1): apparent minus physical width, subtracted from the widths
+    offset_sd_mm    its one-sigma uncertainty
+    gain            g of eq. (1) (flow x scan scale; reported only)
+    gain_sd         its sd
+    sections        per section: commanded width, median apparent width, its sd, stations
+    applied         whether the widths were corrected
+    note            one line for the summary and the CLI
+    warnings        e.g. a width still changing inside a settled section
+    """
+
+    offset_mm: float = float("nan")
+    offset_sd_mm: float = float("nan")
+    gain: float = float("nan")
+    gain_sd: float = float("nan")
+    sections: list = field(default_factory=list)
+    applied: bool = False
+    note: str = ""
+    warnings: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k, v in list(d.items()):
+            if isinstance(v, float) and not np.isfinite(v):
+                d[k] = None
+        return d
+
+
+def reference_stations(manifest: Manifest, ds_mm: float = 0.25) -> tuple[Samples, np.ndarray] | None:
+    """Stations on the settled part of every width-reference section, and their section index.
+
+    None when the manifest has no width-reference track (or no timeline).
+    """
+    refs = [tr for tr in manifest.tracks if tr.kind == "prime" and tr.params.get("role") == "width_reference"]
+    if not refs or manifest.timeline is None:
+        return None
+    smp = sample_points(manifest, ds_mm=ds_mm, kinds=("prime",))
+    keep = np.zeros(len(smp), bool)
+    section = np.full(len(smp), -1)
+    k = 0
+    for tr in refs:
+        on = smp.track == tr.id
+        for s0, s1, _w in tr.params.get("sections_mm", []):
+            sel = on & (smp.s_mm >= s0 + 0.5) & (smp.s_mm <= s1 - 1.0)
+            if not sel.any():
+                k += 1
+                continue
+            t_start = np.nanmin(smp.t_s[on & (smp.s_mm >= s0) & (smp.s_mm <= s1)])
+            sel &= smp.t_s - t_start >= SETTLE_S
+            keep |= sel
+            section[sel] = k
+            k += 1
+    if not keep.any():
+        return None
+    sub = Samples(**{f: getattr(smp, f)[keep] for f in Samples.__dataclass_fields__})
+    return sub, section[keep]
+
+
+def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2) -> WidthCalibration:
+    """Fit eq. (1) to measured apparent widths at the reference stations.
+
+    width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
+    height_mm: the reference's layer height. A flow factor g scales the bead's area, so
+    the physical width is g w + (1 - g) h (1 - pi/4) (fit/geometry.py rounded rectangle):
+    that small (1 - g) term is taken out of the intercept before it is called b0.
+    """
+    cal = WidthCalibration()
+    rows = []
+    for k in np.unique(section):
+        m = (section == k) & valid & np.isfinite(width_mm) & (width_mm > 0)
+        if m.sum() < MIN_STATIONS:
+            continue
+        a = width_mm[m]                     # in print order (stations along the track)
+        med = float(np.median(a))
+        x = np.linspace(-0.5, 0.5, len(a))
+        slope, icpt = np.polyfit(x, a, 1)   # the change across the section: a flow still settling
+        mad = float(np.median(np.abs(a - (slope * x + icpt)))) * 1.4826
+        n_ind = max(1.0, m.sum() / STATIONS_PER_INDEPENDENT)
+        sd = max(mad * 1.2533 / np.sqrt(n_ind), 0.5e-3)       # sd of a median, with a 0.5 um floor
+        trend = float(slope)
+        rows.append({"width_commanded_mm": float(np.median(nominal_mm[m])), "apparent_mm": med,
+                     "apparent_sd_mm": sd, "stations": int(m.sum()), "trend_mm": trend})
+    cal.sections = rows
+    ws = np.array([r["width_commanded_mm"] for r in rows])
+    if len(rows) < 2 or np.ptp(ws) < 0.1:
+        cal.note = ("no apparent-width calibration: the print has no settled width-reference sections of two "
+                    "widths (the prime line of `calib pattern` G-code); widths are apparent widths")
+        return cal
+    A = np.column_stack([ws, np.ones(len(ws))])
+    wt = 1.0 / np.array([r["apparent_sd_mm"] for r in rows]) ** 2
+    y = np.array([r["apparent_mm"] for r in rows])
+    cov = np.linalg.inv(A.T @ (A * wt[:, None]))
+    g, b0 = cov @ (A.T @ (wt * y))
+    resid = y - A @ np.array([g, b0])
+    dof = len(rows) - 2
+    if dof > 0:   # scale by the misfit between sections of the same width, never below 1
+        cov = cov * max(1.0, float(np.sum(wt * resid ** 2)) / dof)
+    b0 = b0 - (1.0 - g) * height_mm * (1.0 - np.pi / 4.0)
+    cal.gain, cal.offset_mm = float(g), float(b0)
+    cal.gain_sd, cal.offset_sd_mm = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
+    for r in rows:
+        if abs(r["trend_mm"]) > max(6 * r["apparent_sd_mm"], 0.004):
+            cal.warnings.append(f"width reference {r['width_commanded_mm']:.2f} mm still changes by "
+                                f"{r['trend_mm'] * 1000:+.0f} um within its settled part: the flow may not have "
+                                "settled (long Bowden?), the offset may be off by as much")
+    if not 0.7 <= g <= 1.3:
+        cal.warnings.append(f"width reference gain {g:.2f} is far from 1: wrong layer height, flow or "
+                            "scan scale; the offset is not applied")
+        cal.note = f"apparent-width calibration rejected (gain {g:.2f})"
+        return cal
+    cal.applied = True
+    cal.note = (f"apparent-width calibration: apparent = {g:.3f} x physical {b0 * 1000:+.1f} um "
+                f"(+-{cal.offset_sd_mm * 1000:.1f} um) from {sum(r['stations'] for r in rows)} reference "
+                f"stations; widths corrected by {-b0 * 1000:+.1f} um")
+    return cal

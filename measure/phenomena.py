@@ -1,0 +1,271 @@
+"""What real prints and real pictures do that the width measurement does not assume.
+
+The width measurement (measure/edges.py) fits an erf edge pair: a box of plastic blurred
+by a Gaussian. A bench that renders beads as exactly that (measure/render.py's default
+"erf" footprint) scores the measurement on its own assumption, the *inverse crime*.
+These phenomena, switched on by name, break each assumption in the way real prints and
+cameras do, so ``make bench`` can show one row per phenomenon and one with all of them
+(bench/bench_realism.py):
+
+  profile      the bead's real cross-section instead of an erf footprint: the slicer's
+               rounded rectangle (fit/geometry.py: flat top, semicircular flanks of
+               radius h/2), seen from above as a hard footprint edge at +-w/2, with
+               Lambertian shading of the flanks, I ~ a + (1 - a) cos(theta) (theta the
+               surface slope), so flanks are darker than the crown
+  translucent  natural/white PLA: light passes the thin flanks, opacity
+               1 - exp(-t / l) with t the plastic thickness (Beer-Lambert) and
+               l = 0.08-0.15 mm, so the apparent edge sits inside the physical one
+               (implies ``profile``)
+  glare        specular highlights of glossy plastic: Blinn-Phong (n . h)^p on the
+               flanks facing the light (p = 40-80), saturating on light plastic; heading
+               dependent, so a streak runs along one side of some beads only
+  strings      plastic deposited on travel moves (ooze with no retraction), from the same
+               physics as the beads (the virtual printer's extruded volume on each travel
+               interval), drawn as round strings of diameter sqrt(4 V / (pi L))
+  raster_gaps  every non-test track (fiducial rasters, labels, ruler, prime line) at the
+               width its deposited volume gives (fit/geometry.py inverse) instead of the
+               commanded width: neighbouring raster lines merge only as far as they reach
+  grain        textured PEI: grains 0.1-0.3 mm of +-30 % brightness under the whole
+               pattern (procedural, evaluated at every pixel's bed position)
+  logos        printed text/logos on the plate under and between the pattern's tracks
+  light        strongly uneven light: 40 % gradient, 45 % vignetting, a soft hotspot
+  defocus      blur that grows across the image (depth of field of a tilted phone, a
+               print not flat on the glass): sigma 0.6 -> 2.4 px
+  jpeg         JPEG quality 70 (chroma subsampling, blocking at bead edges)
+
+``profile`` changes what a width *is* for the measurement: the true (physical) width is
+the footprint, and a profile-aware picture has an apparent (half-contrast) width that
+differs from it by an amount depending on colour, plate, light and translucency. That
+difference is what measure/calibrate.py calibrates per scan.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+PHENOMENA = ("profile", "translucent", "glare", "strings", "raster_gaps", "grain", "logos", "light",
+             "defocus", "jpeg")
+#: Phenomena that need the virtual printer's deposition (not only the stations' widths).
+NEEDS_PHYSICS = ("strings", "raster_gaps")
+
+
+@dataclass(frozen=True)
+class Realism:
+    """The phenomena to render, by name (see the module docstring), and their strengths.
+
+    attenuation_mm    Beer-Lambert length l of translucent plastic (mm); None = seeded 0.08-0.15
+    ambient           shading floor a of the flanks (fraction of the crown's brightness)
+    glare_dn          peak specular highlight (DN, 0-255 scale) before clipping
+    jpeg_quality      quality used by ``jpeg``
+    """
+
+    enabled: frozenset = field(default_factory=frozenset)
+    attenuation_mm: float | None = None
+    ambient: float = 0.35
+    glare_dn: float = 160.0
+    jpeg_quality: int = 70
+
+    def __post_init__(self):
+        unknown = set(self.enabled) - set(PHENOMENA)
+        if unknown:
+            raise ValueError(f"unknown phenomenon {sorted(unknown)[0]!r}; known: {', '.join(PHENOMENA)}")
+        en = set(self.enabled)
+        if {"translucent", "glare"} & en:
+            en.add("profile")   # both are properties of the bead's cross-section
+        object.__setattr__(self, "enabled", frozenset(en))
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.enabled
+
+    @classmethod
+    def parse(cls, text: str | None, camera_kind: str = "flatbed") -> "Realism":
+        """"all", "none", "default" or a comma list ("profile,grain"); default = all for a
+        phone photo, none for a flatbed scan."""
+        t = (text or "default").strip().lower()
+        if t == "default":
+            t = "all" if camera_kind == "phone" else "none"
+        if t == "all":
+            return cls(frozenset(PHENOMENA))
+        if t in ("none", ""):
+            return cls()
+        return cls(frozenset(p.strip() for p in t.split(",") if p.strip()))
+
+    @property
+    def label(self) -> str:
+        if not self.enabled:
+            return "none"
+        if set(PHENOMENA) <= self.enabled:
+            return "all"
+        return ",".join(p for p in PHENOMENA if p in self.enabled)
+
+
+# =====================================================================================
+# deposition from the physics: raster widths and travel strings
+# =====================================================================================
+def deposit_pieces(manifest, vp, *, string_min_mm: float = 0.02, string_max_mm: float = 0.6,
+                   min_interval_mm: float = 0.02):
+    """Where the virtual printer put plastic that the station table does not describe.
+
+    Returns (track_pieces, strings):
+      track_pieces  {track id: [(seg (K, 4) mm, w (K, 2) mm)]} for every non-test track,
+                    its width per timeline interval from the volume deposited there,
+                    w = bead_width(V / L, h) (fit/geometry.py), pieces split where nothing
+                    was deposited
+      strings       [(seg (K, 4), d (K, 2), d_mean)] travel intervals with plastic, as round
+                    strings of diameter d = sqrt(4 V / (pi L)) (mm); thinner than
+                    ``string_min_mm`` is not drawn (it would not show at any dpi we use),
+                    thicker than ``string_max_mm`` is a blob dragged along and capped there
+    ``vp``: fit.virtual.VirtualPrint of ``manifest`` (its ``sim`` holds the per-interval
+    extruded filament length).
+    """
+    from fit.geometry import bead_width_mm, filament_area_mm2
+
+    tl = manifest.timeline
+    if tl is None or vp is None or vp.sim is None:
+        return {}, []
+    out_mm = np.asarray(vp.sim.out_mm[0], dtype=float)           # filament mm per interval
+    n = min(len(out_mm), len(tl) - 1)
+    af = filament_area_mm2(float(manifest.printer.get("filament_diameter_mm", 1.75)))
+    vol = np.maximum(out_mm[:n], 0.0) * af
+    x, y = tl.x_mm, tl.y_mm
+    L = np.hypot(np.diff(x[:n + 1]), np.diff(y[:n + 1]))
+    trk = tl.track[:n]
+    same = trk == tl.track[1:n + 1]
+    kinds = {tr.id: tr.kind for tr in manifest.tracks}
+    tracks = {tr.id: tr for tr in manifest.tracks}
+    heights = {tr.id: float(np.nanmean(tr.height_mm)) if len(tr.height_mm) else 0.2 for tr in manifest.tracks}
+    track_pieces: dict[int, list] = {}
+    strings = []
+
+    ux = np.divide(np.diff(x[:n + 1]), L, out=np.zeros(n), where=L > 0)
+    uy = np.divide(np.diff(y[:n + 1]), L, out=np.zeros(n), where=L > 0)
+
+    def runs(mask):
+        """Consecutive intervals, cut at raster U-turns (> 100 deg) so that neighbouring
+        lines of one raster add up where they touch (as in render._track_pieces)."""
+        idx = np.flatnonzero(mask)
+        if len(idx) == 0:
+            return []
+        turn = ux[idx[1:]] * ux[idx[:-1]] + uy[idx[1:]] * uy[idx[:-1]] < np.cos(np.deg2rad(100.0))
+        cut = np.flatnonzero((np.diff(idx) > 1) | turn) + 1
+        return np.split(idx, cut)
+
+    for tid, kind in kinds.items():
+        if kind == "test":
+            continue
+        h = max(heights[tid], 0.05)
+        # a near-still interval is a blob, not a bead: its volume over ~0 length would
+        # read as an arbitrarily wide line, so it is capped at twice the widest command
+        m = (trk == tid) & same & (L > min_interval_mm)
+        w_int = np.zeros(n)
+        w_cap = 2.0 * max(float(np.max(tracks[tid].width_mm, initial=0.0)), 0.5)
+        w_int[m] = np.minimum(bead_width_mm(vol[m] / L[m], h), w_cap)
+        for r in runs(m & (w_int > 0.02)):
+            seg, ww = _chain(x, y, r, w_int)
+            track_pieces.setdefault(tid, []).append((seg, ww))
+        track_pieces.setdefault(tid, [])
+    travel = (trk == -1) & (L > min_interval_mm)
+    d_int = np.zeros(n)
+    d_int[travel] = np.minimum(np.sqrt(4.0 * vol[travel] / (np.pi * L[travel])), string_max_mm)
+    for r in runs(travel & (d_int >= string_min_mm)):
+        seg, dd = _chain(x, y, r, d_int)
+        strings.append((seg, dd, float(np.mean(d_int[r]))))
+    return track_pieces, strings
+
+
+def _chain(x, y, idx, w_int):
+    """Segments (K, 4) and end widths (K, 2) of consecutive intervals ``idx``; widths are
+    per interval, made continuous by averaging at the shared nodes."""
+    a = np.column_stack([x[idx], y[idx]])
+    b = np.column_stack([x[idx + 1], y[idx + 1]])
+    w = w_int[idx]
+    wn = np.concatenate([[w[0]], 0.5 * (w[:-1] + w[1:]), [w[-1]]])   # node widths
+    return np.hstack([a, b]), np.column_stack([wn[:-1], wn[1:]])
+
+
+# =====================================================================================
+# plate and picture
+# =====================================================================================
+def pei_grain(Xc, Yc, seed: int, cell_mm: float = 0.18, contrast: float = 0.30) -> np.ndarray:
+    """Multiplicative brightness (H, W) of textured PEI at bed positions (mm).
+
+    Value noise on a lattice of ``cell_mm`` (grains 0.1-0.3 mm after the smooth
+    interpolation), hashed from the integer lattice coordinates so it is a property of
+    the plate (the same grain under every camera), plus a finer octave at cell/2.
+    Mean 1, values in 1 +- contrast.
+    """
+    out = np.zeros(Xc.shape, np.float32)
+    for octave, amp in ((1.0, 0.7), (0.5, 0.3)):
+        c = cell_mm * octave
+        gx, gy = Xc / c, Yc / c
+        ix, iy = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
+        fx, fy = (gx - ix).astype(np.float32), (gy - iy).astype(np.float32)
+        sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)     # smoothstep
+        v00 = _hash01(ix, iy, seed + int(octave * 100))
+        v10 = _hash01(ix + 1, iy, seed + int(octave * 100))
+        v01 = _hash01(ix, iy + 1, seed + int(octave * 100))
+        v11 = _hash01(ix + 1, iy + 1, seed + int(octave * 100))
+        v = (v00 * (1 - sx) + v10 * sx) * (1 - sy) + (v01 * (1 - sx) + v11 * sx) * sy
+        out += amp * (2.0 * v - 1.0)
+    return 1.0 + contrast * out
+
+
+def _hash01(ix, iy, seed: int) -> np.ndarray:
+    """Uniform [0, 1) per integer lattice point (a 64-bit integer hash; no global state)."""
+    h = (ix * np.int64(73856093)) ^ (iy * np.int64(19349663)) ^ np.int64(seed * 83492791 + 1)
+    h = (h ^ (h >> 13)) * np.int64(1274126177)
+    h = h ^ (h >> 16)
+    return ((h & 0xFFFFFF).astype(np.float32) / np.float32(0x1000000))
+
+
+def varying_blur(img: np.ndarray, sigma_map: np.ndarray, levels: int = 5) -> np.ndarray:
+    """Gaussian blur whose sigma (px) varies over the image (depth of field).
+
+    The image is blurred at ``levels`` sigmas spanning the map's range and each pixel
+    interpolates linearly between the two levels that bracket its sigma.
+    """
+    import cv2
+
+    lo, hi = float(sigma_map.min()), float(sigma_map.max())
+    sig = np.linspace(lo, hi, levels) if hi > lo else np.array([lo])
+    stack = [cv2.GaussianBlur(img, (0, 0), max(s, 1e-3)) if s > 0.05 else img for s in sig]
+    if len(sig) == 1:
+        return stack[0]
+    pos = (sigma_map - lo) / (hi - lo) * (levels - 1)
+    k = np.clip(np.floor(pos).astype(int), 0, levels - 2)
+    f = (pos - k).astype(np.float32)
+    out = np.zeros_like(img)
+    for j in range(levels - 1):
+        m = k == j
+        if not m.any():
+            continue
+        fj = f[m][:, None] if img.ndim == 3 else f[m]
+        out[m] = stack[j][m] * (1 - fj) + stack[j + 1][m] * fj
+    return out
+
+
+def defocus_map(W: int, H: int, rng, lo_px: float = 0.6, hi_px: float = 2.4) -> np.ndarray:
+    """Blur sigma (px) rising linearly across the image in a seeded direction."""
+    a = rng.uniform(0, 2 * np.pi)
+    u = np.linspace(-1, 1, W, dtype=np.float32)[None, :]
+    v = np.linspace(-1, 1, H, dtype=np.float32)[:, None]
+    t = (np.cos(a) * u + np.sin(a) * v) / (abs(np.cos(a)) + abs(np.sin(a)))
+    return (lo_px + (hi_px - lo_px) * 0.5 * (t + 1.0)).astype(np.float32)
+
+
+def half_vector(camera_kind: str, rng) -> np.ndarray:
+    """Blinn-Phong half vector (unit, bed frame, z up) between the light and the view.
+
+    Flatbed: the lamp shines from +-y at ~45 deg, the sensor looks straight down. Phone:
+    a window or ceiling light at 30-60 deg elevation, seeded azimuth; the camera looks
+    down at the tilt it was held at (the view's small x/y part is neglected: the
+    highlight's position moves by a fraction of a bead, its side does not).
+    """
+    if camera_kind == "flatbed":
+        light = np.array([0.0, np.sin(np.deg2rad(45)) * (1 if rng.uniform() < 0.5 else -1), np.cos(np.deg2rad(45))])
+    else:
+        el, az = np.deg2rad(rng.uniform(30, 60)), rng.uniform(0, 2 * np.pi)
+        light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    hv = light + np.array([0.0, 0.0, 1.0])
+    return hv / np.linalg.norm(hv)
