@@ -409,7 +409,7 @@ class Physics:
         return self.model.param_names.index(f"fw_comp.{name}")
 
 
-def physics_from_fit(doc, n_draws: int = 32, seed: int = 0) -> Physics:
+def physics_from_fit(doc, n_draws: int = 64, seed: int = 0) -> Physics:
     """Rebuild the fit's dynamics from fit.json (model spec, param_names, samples,
     profile) with ``n_draws`` posterior draws (random subsample, fixed seed). UserError
     when the fit holds no draws or a model this version cannot rebuild."""
@@ -644,7 +644,7 @@ def tested_flow_of(doc) -> tuple | None:
 
 def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_free: bool = False,
                    kalico_smooth_time_s: float = KLIPPER_SMOOTH_TIME_S,
-                   table_smooth_time_s: float = 0.0, n_draws: int = 32, seed: int = 0,
+                   table_smooth_time_s: float = 0.0, n_draws: int = 64, seed: int = 0,
                    physics: Physics | None = None, on_draw=None) -> MatchResult:
     """Simulate ``ref`` with the fit's dynamics (``n_draws`` posterior draws) under: no PA;
     linear PA at tau; the width-optimal linear PA (per draw, exported as the median with a
