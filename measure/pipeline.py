@@ -16,7 +16,7 @@ import numpy as np
 from calib.errors import UserError
 from calib.fileio import atomic_write_text
 from measure.imageio import load_image
-from measure.register import Registration, register
+from measure.register import FiducialsNotFound, Registration, register
 from measure.table import WidthTable
 from measure.widths import WidthMeasurement, measure_widths
 
@@ -53,8 +53,14 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     if not manifest.test_tracks():
         raise UserError("the manifest has no test tracks to measure; make it with `calib pattern` or `calib plan`")
     gray, color = load_image(image_path)
-    reg = register(gray, manifest, points=points)
+    reg = _register(gray, manifest, points)
     meas = measure_widths(gray, manifest, reg, color=color)
+    if reg.method.startswith("auto"):
+        # the automatic pose is refined once more on the bead centres it measured (ICP)
+        from measure.autoreg import refine_with_centres
+        t = meas.table
+        reg = refine_with_centres(reg, t.x_mm, t.y_mm, meas.nx, meas.ny, meas.centre_mm, t.valid)
+        meas = measure_widths(gray, manifest, reg, color=color)
     table = meas.table
     cal = apparent_width_calibration(gray, color, manifest, reg)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
@@ -67,6 +73,10 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         c = meas.centre_mm[good]
         c = c[np.abs(c) <= np.percentile(np.abs(c), 90)]
         reg.track_offset_rms_mm = float(np.sqrt(np.mean(c ** 2)))
+    if reg.method.startswith("auto"):
+        # automatic pose: the residual is the median distance of the detected bead centre
+        # lines from the projected path (robust to the beads that are not where planned)
+        reg.residual_mm = float(np.median(np.abs(meas.centre_mm[good]))) if good.sum() >= 10 else float("nan")
     if not np.isfinite(reg.residual_mm):
         reg.residual_mm = reg.track_offset_rms_mm
     warnings = list(reg.warnings) + list(cal.warnings)
@@ -94,13 +104,15 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
                       for t in np.unique(table.track)},
         "warnings": warnings,
     }
+    if reg.info:
+        summary["automatic_registration"] = reg.info
     result = MeasureResult(table=table, registration=reg, summary=summary, measurement=meas, color=color)
-    refusal = None
-    if valid_frac < MIN_VALID_FRACTION:
+    refusal = reg.info.get("refusal")        # the automatic pose found nothing convincing
+    if refusal is None and valid_frac < MIN_VALID_FRACTION:
         refusal = (f"only {valid_frac:.0%} of the samples could be measured: the picture does not show "
                    "this pattern's tracks where the registration puts them (wrong pattern, or wrong "
                    "--points?)")
-    elif max_residual_mm is not None and not (reg.residual_mm <= max_residual_mm):
+    elif refusal is None and max_residual_mm is not None and not (reg.residual_mm <= max_residual_mm):
         refusal = (f"registration residual {reg.residual_mm:.3f} mm is above --max-residual-mm "
                    f"{max_residual_mm:g}: re-take the picture flat and sharp, or give better --points")
     if refusal:
@@ -125,6 +137,24 @@ def apparent_width_calibration(gray, color, manifest, reg):
     m = measure_widths(gray, smp, reg, manifest=manifest, color=color)
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
     return calibrate(m.table.width_mm, m.table.valid, smp.width_nominal_mm, section, height_mm=h)
+
+
+def _register(gray, manifest, points) -> Registration:
+    """Fiducials, else the user's points, else the automatic pose (measure.autoreg): for
+    third-party prints (no fiducials in the manifest) and when the markers are not found."""
+    from measure.autoreg import auto_register
+
+    if points is None and not manifest.fiducials:
+        return auto_register(gray, manifest)
+    try:
+        return register(gray, manifest, points=points)
+    except FiducialsNotFound as exc:
+        reg = auto_register(gray, manifest)
+        why = str(exc).split(":")[0]          # "found 1 of the pattern's 4 fiducials (need >= 2)"
+        if reg.info.get("refusal"):
+            reg.info["refusal"] = f"{why}, and {reg.info['refusal']}"
+        reg.warnings.append(f"{why}; registered automatically from the track layout instead")
+        return reg
 
 
 def save_summary(path, summary: dict) -> None:

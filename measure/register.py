@@ -8,7 +8,8 @@ k1, k2 about the image centre, OpenCV convention), estimated in three steps:
    point pairs bed corner -> image corner and H by RANSAC (``cv2.findHomography``).
    Normal markers (light plastic on a dark plate) and inverted ones (dark on light) are
    both accepted; the mirrored image is tried for a print scanned face down. Without
-   fiducials the user's ``--points`` pairs give the start instead.
+   fiducials the user's ``--points`` pairs give the start instead, or a pose found
+   automatically from the track layout (``start_H``, measure.autoreg).
 2. Refinement by the track layout: the manifest's tracks drawn through the mapping must
    lie on the ridge of a "track-likeness" image D (local contrast, polarity folded in,
    Gaussian-blurred at a coarse-to-fine ladder of scales). ``scipy.optimize.least_squares``
@@ -36,6 +37,11 @@ RANSAC_PX = 4.0
 APRILTAG_OFFSET_PX = 0.5
 
 
+class FiducialsNotFound(UserError):
+    """Fewer than two of the manifest's fiducials were found (the caller may fall back to
+    the automatic registration, measure.autoreg)."""
+
+
 @dataclass
 class Registration:
     """Bed mm -> image px for one image, and how good it is.
@@ -46,7 +52,7 @@ class Registration:
                    offset when registered from point hints
     n_markers      fiducials used
     mirrored       image is a mirror view of the bed (print scanned face down)
-    method         "fiducials" or "points" (+ "+tracks" when the layout refinement ran)
+    method         "fiducials", "points" or "auto" (+ "+tracks" when the layout refinement ran)
     polarity       +1 light plastic on a dark plate, -1 dark on light
     """
 
@@ -64,6 +70,8 @@ class Registration:
     marker_bleed: tuple = (0.0, 0.0)
     corner_rms_px: float = float("nan")
     warnings: list = field(default_factory=list)
+    track_score: float = float("nan")      # mean saturated track-likeness after refinement (0..1)
+    info: dict = field(default_factory=dict)   # how an automatic pose was found (measure.autoreg)
 
     @property
     def camera(self) -> Camera:
@@ -238,11 +246,11 @@ class _Mapping:
         return uv
 
 
-def _undistorted_homography(bed, img, center, f, k1, k2, ransac: bool):
+def _undistorted_homography(bed, img, center, f, k1, k2, ransac: bool, threshold_px: float = RANSAC_PX):
     from measure.camera import undistort_px
     u = undistort_px(img, center, f, k1, k2) if (k1 or k2) else img
     if ransac and len(bed) >= 8:
-        H, mask = cv2.findHomography(bed, u, cv2.RANSAC, RANSAC_PX)
+        H, mask = cv2.findHomography(bed, u, cv2.RANSAC, threshold_px)
     else:
         H, mask = cv2.findHomography(bed, u, 0)
     if H is None:
@@ -350,13 +358,15 @@ def estimate_polarity(gray, project, pts, wid, nrm) -> tuple[float, float]:
 
 # -- the registration ---------------------------------------------------------------------
 def register(image, manifest, points=None, *, refine: bool = True,
-             distortion: bool | None = None) -> Registration:
+             distortion: bool | None = None, start_H=None) -> Registration:
     """Bed mm -> image px for ``image`` (gray float 0..1, or uint8) showing ``manifest``'s print.
 
     points      optional point hints: text ``"x,y=u,v;..."`` or (bed (N, 2), img (N, 2)).
     refine      run the track-layout refinement (step 2 of the module docstring).
     distortion  estimate k1, k2: None = only when the image looks like a photo (marker
                 corners misfit a pure homography by > 0.5 px, or point hints are used).
+    start_H     a bed mm -> px homography to start from when there are neither fiducials
+                nor points (measure.autoreg; good to ~1 mm): method "auto".
     Raises UserError when there is nothing to register with or it fails.
     """
     gray = np.asarray(image, dtype=np.float32)
@@ -394,6 +404,8 @@ def register(image, manifest, points=None, *, refine: bool = True,
             warnings.append(f"only {len(used)} fiducial(s) found; registration is less certain")
     elif hint_bed is not None:
         method = "points"
+    elif start_H is not None:
+        method = "auto"
     else:
         expected = sorted(f.id for f in manifest.fiducials)
         if not manifest.fiducials:
@@ -402,7 +414,7 @@ def register(image, manifest, points=None, *, refine: bool = True,
         if ids and not used:
             raise UserError(f"the image shows ArUco marker(s) {sorted(set(ids))} but the manifest expects "
                             f"{expected}: is it a picture of another pattern?")
-        raise UserError(f"found {len(used)} of the pattern's {len(expected)} fiducials (need >= 2): "
+        raise FiducialsNotFound(f"found {len(used)} of the pattern's {len(expected)} fiducials (need >= 2): "
                         "check the whole print is in the picture, in focus and without glare, "
                         "or give --points \"x_mm,y_mm=u_px,v_px;...\"")
 
@@ -411,18 +423,29 @@ def register(image, manifest, points=None, *, refine: bool = True,
     if method == "fiducials":
         H0, inl = _undistorted_homography(bed_pts, img_pts, center, f_px, 0, 0, ransac=True)
         if H0 is None or inl.sum() < 8:
+            # every marker shrunk or grown alike (translucent or lagging raster edges,
+            # measure/phenomena.py) moves all corners by the bleed: wider gate, the corner
+            # fit below models the bleed itself
+            side = float(np.median([np.linalg.norm(c[0] - c[2]) for c in img_c])) / np.sqrt(2)
+            H0, inl = _undistorted_homography(bed_pts, img_pts, center, f_px, 0, 0, ransac=True,
+                                              threshold_px=max(RANSAC_PX, 0.06 * side))
+        if H0 is None or inl.sum() < 8:
             raise UserError("the fiducials found do not fit one plane mapping; "
                             "photograph the print flat and whole, or give --points")
         bed_pts, img_pts, ctr_pts = bed_pts[inl], img_pts[inl], ctr_pts[inl]
         # misfit of a pure homography (plus marker bleed) decides whether the lens distorts
         rms0 = _corner_fit(H0, size, bed_pts, img_pts, ctr_pts)
-    else:
+    elif method == "points":
         H0, _ = _undistorted_homography(hint_bed, hint_img, center, f_px, 0, 0, ransac=False)
         if H0 is None:
             raise UserError("--points: cannot compute a mapping from these pairs; check them")
         rms0 = np.inf
+    else:
+        H0 = np.asarray(start_H, float) / start_H[2, 2]
+        rms0 = np.inf
+        mirrored = bool(np.linalg.det(H0[:2, :2]) > 0)      # a top-down view flips y
     if distortion is None:
-        distortion = method == "points" or rms0 > 0.5
+        distortion = method in ("points", "auto") or rms0 > 0.5
     lay_pts, lay_w, lay_n = layout_points(manifest)
     mp = _Mapping(H0, size, distortion, lay_pts)
     x = mp.x0()
@@ -439,14 +462,14 @@ def register(image, manifest, points=None, *, refine: bool = True,
     if refine:
         corners = (bed_pts, img_pts, ctr_pts) if method == "fiducials" else None
         hints = (hint_bed, hint_img) if hint_bed is not None else None
-        if method == "points":
+        if method in ("points", "auto"):
             # A hint start can be a line pitch off, which makes the polarity test
             # unreliable: refine with both and keep the better-aligned result.
             tries = [(_refine(gray, mp, x, lay_pts, lay_w, pol, scale, corners, hints, method), pol)
                      for pol in (1.0, -1.0)]
-            (x, _), polarity = max(tries, key=lambda tr: tr[0][1])
+            (x, track_score), polarity = max(tries, key=lambda tr: tr[0][1])
         else:
-            x, _ = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method)
+            x, track_score = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method)
         method += "+tracks"
         # Polarity again on the refined mapping (the hint start may have been too far off).
         polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, lay_n)
@@ -455,7 +478,8 @@ def register(image, manifest, points=None, *, refine: bool = True,
                        distortion={"center_px": tuple(center), "f_px": f_px, "k1": float(k1), "k2": float(k2)},
                        residual_mm=float("nan"), n_markers=len(used), mirrored=mirrored, method=method,
                        image_size=size, polarity=polarity, marker_ids=list(used),
-                       marker_corners_px=[c for c in img_c] if used else [], warnings=warnings)
+                       marker_corners_px=[c for c in img_c] if used else [], warnings=warnings,
+                       track_score=track_score if refine else float("nan"))
     if method.startswith("fiducials"):
         cam = reg.camera
         bleed = x[-2:] if refine else np.zeros(2)
@@ -475,6 +499,8 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
     w_med = float(np.median(lay_w))
     if method == "points":
         ladder_mm = [2.0, 1.0, 0.5, 0.25, max(0.1, w_med / 3)]
+    elif method == "auto":      # the automatic start is already good to ~1 mm
+        ladder_mm = [1.0, 0.5, 0.25, max(0.1, w_med / 3)]
     else:
         ladder_mm = [0.5, 0.25, max(0.1, w_med / 3)]
     sig_c = 0.3                       # px, AprilTag corner noise
