@@ -1,6 +1,8 @@
 """Measurement accuracy, honesty and speed on synthetic pictures with ground truth.
 
-Scenes: the spiral-step pattern (widths 0.25-1.6 mm) printed on the virtual printer
+Scenes (the renderer's own erf beads, no phenomena: the baseline; bench_realism.py
+scores the phenomena the measurement does not assume): the spiral-step pattern
+(widths 0.25-1.6 mm) printed on the virtual printer
 (fit.virtual, Bowden truth data/truths/bowden.toml) so the true widths carry the physics
 transients, rendered by measure.render (calib.commands.simulate.simulate_scan) as
 
@@ -35,7 +37,10 @@ def _scene(kind: str, seed: int):
 
     _, man = spiral_step.generate("long_bowden", widths_mm=WIDTHS_MM, speeds_mm_s=(20.0, 40.0))[:2]
     spec, values, _ = load_truth(data_dir() / "truths" / "bowden.toml")
-    rendered, _ = simulate_scan(man, spec, values, kind, profile=man.printer, dpi=600.0, tilt_deg=25.0, seed=seed)
+    # the renderer's own erf beads (realism "none"): the baseline; bench_realism has the
+    # phenomena the measurement does not assume
+    rendered, _ = simulate_scan(man, spec, values, kind, profile=man.printer, dpi=600.0, tilt_deg=25.0, seed=seed,
+                                realism="none")
     return man, rendered
 
 

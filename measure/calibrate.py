@@ -26,8 +26,9 @@ measured width). Its sd becomes the prior width of the fit's ``scan_bias.b0_mm``
 lets it masquerade as back-pressure.
 
 Limits: a flow still settling at the end of a section (a time constant tau above
-~SETTLE_S / 4) biases b0 by ~exp(-SETTLE_S / tau) of the width step; the fit reports a
-trend within a section as a warning. G-code without a width-reference prime line
+~SETTLE_S / 4, thermal ooze) biases b0 by ~exp(-SETTLE_S / tau) of the width step: a
+section whose width drifts over its settled part is a warning, and above MAX_TREND_MM
+(or an offset sd above MAX_OFFSET_SD_MM) the calibration is not applied and says so. G-code without a width-reference prime line
 (third-party prints) gets no calibration, and the summary says so.
 """
 from __future__ import annotations
@@ -42,6 +43,10 @@ from patterns.manifest import Manifest, Samples, sample_points
 SETTLE_S = 3.0
 #: Fewest valid stations per section for it to count.
 MIN_STATIONS = 12
+#: The calibration is not applied when a section's width drifts by more than this (mm)
+#: over its settled part, or when the offset's sd exceeds MAX_OFFSET_SD_MM.
+MAX_TREND_MM = 0.010
+MAX_OFFSET_SD_MM = 0.010
 #: Profile windows of neighbouring stations overlap: one in this many is independent.
 STATIONS_PER_INDEPENDENT = 4
 
@@ -149,11 +154,16 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2) -> W
     b0 = b0 - (1.0 - g) * height_mm * (1.0 - np.pi / 4.0)
     cal.gain, cal.offset_mm = float(g), float(b0)
     cal.gain_sd, cal.offset_sd_mm = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
-    for r in rows:
-        if abs(r["trend_mm"]) > max(6 * r["apparent_sd_mm"], 0.004):
-            cal.warnings.append(f"width reference {r['width_commanded_mm']:.2f} mm still changes by "
-                                f"{r['trend_mm'] * 1000:+.0f} um within its settled part: the flow may not have "
-                                "settled (long Bowden?), the offset may be off by as much")
+    unsettled = [r for r in rows if abs(r["trend_mm"]) > max(6 * r["apparent_sd_mm"], 0.004)]
+    for r in unsettled:
+        cal.warnings.append(f"width reference {r['width_commanded_mm']:.2f} mm still changes by "
+                            f"{r['trend_mm'] * 1000:+.0f} um within its settled part: the flow had not "
+                            "settled (long Bowden, thermal ooze?)")
+    if any(abs(r["trend_mm"]) > MAX_TREND_MM for r in unsettled) or cal.offset_sd_mm > MAX_OFFSET_SD_MM:
+        cal.note = (f"apparent-width calibration not applied: the width reference had not settled "
+                    f"(offset {b0 * 1000:+.0f} +- {cal.offset_sd_mm * 1000:.0f} um); widths are apparent "
+                    "widths, add scan_bias to the model")
+        return cal
     if not 0.7 <= g <= 1.3:
         cal.warnings.append(f"width reference gain {g:.2f} is far from 1: wrong layer height, flow or "
                             "scan scale; the offset is not applied")

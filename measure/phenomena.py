@@ -104,7 +104,7 @@ class Realism:
 # deposition from the physics: raster widths and travel strings
 # =====================================================================================
 def deposit_pieces(manifest, vp, *, string_min_mm: float = 0.02, string_max_mm: float = 0.6,
-                   min_interval_mm: float = 0.02):
+                   min_speed_mm_s: float = 0.5):
     """Where the virtual printer put plastic that the station table does not describe.
 
     Returns (track_pieces, strings):
@@ -130,6 +130,9 @@ def deposit_pieces(manifest, vp, *, string_min_mm: float = 0.02, string_max_mm: 
     vol = np.maximum(out_mm[:n], 0.0) * af
     x, y = tl.x_mm, tl.y_mm
     L = np.hypot(np.diff(x[:n + 1]), np.diff(y[:n + 1]))
+    dt = np.diff(tl.t_s[:n + 1])
+    # a near-still interval (head slower than min_speed_mm_s) holds a blob, not a bead
+    moving = (L > 1e-6) & (L > min_speed_mm_s * np.maximum(dt, 0.0))
     trk = tl.track[:n]
     same = trk == tl.track[1:n + 1]
     kinds = {tr.id: tr.kind for tr in manifest.tracks}
@@ -155,9 +158,9 @@ def deposit_pieces(manifest, vp, *, string_min_mm: float = 0.02, string_max_mm: 
         if kind == "test":
             continue
         h = max(heights[tid], 0.05)
-        # a near-still interval is a blob, not a bead: its volume over ~0 length would
-        # read as an arbitrarily wide line, so it is capped at twice the widest command
-        m = (trk == tid) & same & (L > min_interval_mm)
+        # a blob dragged along would read as an arbitrarily wide line: capped at twice
+        # the widest command
+        m = (trk == tid) & same & moving
         w_int = np.zeros(n)
         w_cap = 2.0 * max(float(np.max(tracks[tid].width_mm, initial=0.0)), 0.5)
         w_int[m] = np.minimum(bead_width_mm(vol[m] / L[m], h), w_cap)
@@ -165,7 +168,7 @@ def deposit_pieces(manifest, vp, *, string_min_mm: float = 0.02, string_max_mm: 
             seg, ww = _chain(x, y, r, w_int)
             track_pieces.setdefault(tid, []).append((seg, ww))
         track_pieces.setdefault(tid, [])
-    travel = (trk == -1) & (L > min_interval_mm)
+    travel = (trk == -1) & moving
     d_int = np.zeros(n)
     d_int[travel] = np.minimum(np.sqrt(4.0 * vol[travel] / (np.pi * L[travel])), string_max_mm)
     for r in runs(travel & (d_int >= string_min_mm)):

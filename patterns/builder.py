@@ -27,6 +27,8 @@ from patterns.ruler import plan_ruler, ruler_height_mm
 
 #: Duration (s) of each constant-width section of the width-reference prime line.
 REFERENCE_SECTION_S = 5.0
+#: Marker rasters: slow, so a lagging extruder's start transient spans few millimetres.
+FIDUCIAL_SPEED_MM_S = 10.0
 FURNITURE_SPEED_MM_S = 20.0     # fiducials, labels, ruler: slow enough to stick on layer 1
 HOP_SPEED_MM_S = 60.0           # zero-extrusion hops between strokes of one track
 LABEL_HEIGHT_MM = 3.5
@@ -185,10 +187,17 @@ class PatternBuilder:
         return tid
 
     def fiducial(self, plan: FiducialPlan) -> int:
-        tid = self.strokes_track("fiducial", plan.strokes_mm, width_mm=plan.line_width_mm,
-                                 params={"marker_id": plan.fiducial.id})
+        """Print a marker: one track per raster chain, each reached by a retracted travel
+        (patterns/fiducials.py: the nozzle never crosses a black cell while flowing).
+        Returns the first chain's track id."""
+        first = None
+        for chain in plan.chains_mm:
+            tid = self.begin("fiducial", chain[0], params={"marker_id": plan.fiducial.id})
+            self.extrude(chain, plan.line_width_mm, FIDUCIAL_SPEED_MM_S)
+            self.end()
+            first = tid if first is None else first
         self.fiducial_list.append(plan.fiducial)
-        return tid
+        return first
 
     def ruler(self, origin_mm, length_mm: float, angle_deg: float = 0.0) -> int:
         plan = plan_ruler(origin_mm, length_mm, angle_deg)

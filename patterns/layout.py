@@ -158,12 +158,17 @@ def overlapping_tracks(tracks, margin_mm: float = 0.25, res_mm: float = 0.1,
                        coast_width_mm: float = 0.4) -> list[tuple[int, int]]:
     """Pairs of different tracks whose beads, each buffered by width/2 + margin, touch.
 
+    The raster chains of one printed marker (kind "fiducial", same ``marker_id``) are
+    meant to touch: they are one solid print and are not reported against each other.
+
     A raster occupancy test: every segment is drawn as a thick line of width
     w + 2 margin (w = larger vertex width of the segment, ``coast_width_mm`` where the
     pattern coasts without extrusion, since ooze lands there) into a grid of ``res_mm``.
     """
     import cv2
 
+    marker = {t.id: t.params["marker_id"] for t in tracks
+              if t.kind == "fiducial" and "marker_id" in (t.params or {})}
     allp = np.concatenate([t.points_mm for t in tracks])
     lo = allp.min(axis=0) - 3.0
     hi = allp.max(axis=0) + 3.0
@@ -182,6 +187,8 @@ def overlapping_tracks(tracks, margin_mm: float = 0.25, res_mm: float = 0.1,
             cv2.line(mask, tuple(map(int, p[i])), tuple(map(int, p[i + 1])), 1, th, cv2.LINE_8, shift)
         hit = owner[mask > 0]
         for other in np.unique(hit[hit >= 0]):
+            if marker.get(int(other), -1) == marker.get(t.id, -2):
+                continue
             pairs.add((int(min(other, t.id)), int(max(other, t.id))))
         owner[mask > 0] = t.id
     return sorted(pairs)
