@@ -21,10 +21,10 @@ import os
 import tempfile
 import time
 
-import cv2
 import numpy as np
 
 from bench.common import Row
+from calib.commands.simulate import write_image
 
 WIDTHS_MM = (0.25, 0.5, 1.0, 1.6)
 
@@ -49,11 +49,7 @@ def _evaluate(kind: str, seed: int) -> dict:
 
     man, r = _scene(kind, seed)
     with tempfile.TemporaryDirectory() as d:
-        path = os.path.join(d, "scan.jpg" if r.encoded else "scan.png")
-        if r.encoded:
-            open(path, "wb").write(r.encoded)
-        else:
-            cv2.imwrite(path, r.image)
+        path = write_image(os.path.join(d, "scan.jpg" if r.encoded else "scan.png"), r)
         best = np.inf
         for _ in range(2 if kind == "phone" else 1):
             t0 = time.perf_counter()

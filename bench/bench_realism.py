@@ -15,10 +15,10 @@ from __future__ import annotations
 import os
 import tempfile
 
-import cv2
 import numpy as np
 
 from bench.common import Row
+from calib.commands.simulate import write_image
 
 WIDTHS_MM = (0.25, 0.5, 1.0, 1.6)
 #: printer profile and truth of each printer kind
@@ -59,11 +59,7 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
 
     man, r = scene(camera, realism, plate, plastic, seed, printer=printer)
     with tempfile.TemporaryDirectory() as d:
-        path = os.path.join(d, "scan.jpg" if r.encoded else "scan.png")
-        if r.encoded:
-            open(path, "wb").write(r.encoded)
-        else:
-            cv2.imwrite(path, r.image)
+        path = write_image(os.path.join(d, "scan.jpg" if r.encoded else "scan.png"), r)
         try:
             res = measure_scan(path, man)
         except UserError as exc:

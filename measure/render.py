@@ -132,6 +132,39 @@ def unproject_grid(Hinv, cx, cy, f, k1, k2, width, height, ss, X, Y):  # pragma:
             Y[j, i] = q1 / q2
 
 
+@njit(cache=True)
+def _nearest_field(X, Y, seg, segw, bbox, k0, k1, i0, j0, E, Wd, OX, OY):  # pragma: no cover - numba
+    """For the sub-pixels of one bead (segments k0..k1, window offset i0, j0): signed
+    distance inside the edge E = w/2 - d (mm) to the nearest segment (largest E wins),
+    the width there, and (if OX has the window's shape) the unit offset direction from
+    the centre line. Serial: segments are small, a parallel launch per segment costs more
+    than it saves."""
+    with_dir = OX.shape[0] == E.shape[0]
+    for k in range(k0, k1):
+        ax, ay, bx, by = seg[k, 0], seg[k, 1], seg[k, 2], seg[k, 3]
+        w0, w1 = segw[k, 0], segw[k, 1]
+        dx = bx - ax
+        dy = by - ay
+        L2 = dx * dx + dy * dy
+        for j in range(bbox[k, 2], bbox[k, 3]):
+            for i in range(bbox[k, 0], bbox[k, 1]):
+                px = X[j, i] - ax
+                py = Y[j, i] - ay
+                tp = (px * dx + py * dy) / L2 if L2 > 0 else 0.0
+                tp = min(1.0, max(0.0, tp))
+                ex = px - tp * dx
+                ey = py - tp * dy
+                w = w0 + tp * (w1 - w0)
+                dist = math.sqrt(ex * ex + ey * ey)
+                e = 0.5 * w - dist
+                if e > E[j - j0, i - i0]:
+                    E[j - j0, i - i0] = e
+                    Wd[j - j0, i - i0] = w
+                    if with_dir:
+                        OX[j - j0, i - i0] = ex / dist if dist > 1e-9 else 0.0
+                        OY[j - j0, i - i0] = ey / dist if dist > 1e-9 else 0.0
+
+
 @njit(parallel=True, cache=True)
 def _track_coverage(X, Y, seg, segw, bbox, starts, track_sigma, alpha):  # pragma: no cover - numba
     """Add the coverage (eq. 1) of every track to ``alpha`` (clipped at 1).
@@ -154,26 +187,8 @@ def _track_coverage(X, Y, seg, segw, bbox, starts, track_sigma, alpha):  # pragm
             continue
         E = np.full((j1 - j0, i1 - i0), -1e9, dtype=np.float32)
         Wd = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
-        for k in range(k0, k1):
-            ax, ay, bx, by = seg[k, 0], seg[k, 1], seg[k, 2], seg[k, 3]
-            w0, w1 = segw[k, 0], segw[k, 1]
-            dx = bx - ax
-            dy = by - ay
-            L2 = dx * dx + dy * dy
-            # serial: segments are small, a parallel launch per segment costs more than it saves
-            for j in range(bbox[k, 2], bbox[k, 3]):
-                for i in range(bbox[k, 0], bbox[k, 1]):
-                    px = X[j, i] - ax
-                    py = Y[j, i] - ay
-                    tp = (px * dx + py * dy) / L2 if L2 > 0 else 0.0
-                    tp = min(1.0, max(0.0, tp))
-                    ex = px - tp * dx
-                    ey = py - tp * dy
-                    w = w0 + tp * (w1 - w0)
-                    e = 0.5 * w - math.sqrt(ex * ex + ey * ey)
-                    if e > E[j - j0, i - i0]:
-                        E[j - j0, i - i0] = e
-                        Wd[j - j0, i - i0] = w
+        nodir = np.zeros((1, 1), dtype=np.float32)
+        _nearest_field(X, Y, seg, segw, bbox, k0, k1, i0, j0, E, Wd, nodir, nodir)
         sg = track_sigma[t] * math.sqrt(2.0)
         reach = -_EDGE_REACH * track_sigma[t]
         for j in prange(j0, j1):
@@ -212,32 +227,7 @@ def _track_profile(X, Y, seg, segw, bbox, starts, track_h, aa_mm, hv, p_spec, am
         Wd = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
         OX = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
         OY = np.zeros((j1 - j0, i1 - i0), dtype=np.float32)
-        for k in range(k0, k1):
-            ax, ay, bx, by = seg[k, 0], seg[k, 1], seg[k, 2], seg[k, 3]
-            w0, w1 = segw[k, 0], segw[k, 1]
-            dx = bx - ax
-            dy = by - ay
-            L2 = dx * dx + dy * dy
-            for j in range(bbox[k, 2], bbox[k, 3]):
-                for i in range(bbox[k, 0], bbox[k, 1]):
-                    px = X[j, i] - ax
-                    py = Y[j, i] - ay
-                    tp = (px * dx + py * dy) / L2 if L2 > 0 else 0.0
-                    tp = min(1.0, max(0.0, tp))
-                    ex = px - tp * dx
-                    ey = py - tp * dy
-                    w = w0 + tp * (w1 - w0)
-                    dist = math.sqrt(ex * ex + ey * ey)
-                    e = 0.5 * w - dist
-                    if e > E[j - j0, i - i0]:
-                        E[j - j0, i - i0] = e
-                        Wd[j - j0, i - i0] = w
-                        if dist > 1e-9:
-                            OX[j - j0, i - i0] = ex / dist
-                            OY[j - j0, i - i0] = ey / dist
-                        else:
-                            OX[j - j0, i - i0] = 0.0
-                            OY[j - j0, i - i0] = 0.0
+        _nearest_field(X, Y, seg, segw, bbox, k0, k1, i0, j0, E, Wd, OX, OY)
         h = track_h[t]
         aa = aa_mm[t]
         for j in prange(j0, j1):

@@ -32,6 +32,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from calib.errors import UserError
+
 from patterns.gcode_parser import Moves, ParseResult, auto_tracks, parse_gcode
 from patterns.manifest import Timeline
 from patterns.profile import PrinterProfile, load_profile
@@ -73,6 +75,10 @@ class MovePlan:
         d = self.duration_s
         return float(self.t_start_s[-1] + d[-1]) if len(d) else 0.0
 
+
+
+#: A timeline longer than this (samples every <= 5 ms: ~70 h of printing) is a corrupt program.
+MAX_TIMELINE_SAMPLES = 5.0e7
 
 def plan_moves(moves: Moves, profile: PrinterProfile) -> MovePlan:
     """Trapezoids with whole-queue look-ahead (see module docstring for the equations)."""
@@ -257,9 +263,14 @@ def sample_timeline(moves: Moves, mp: MovePlan, track: np.ndarray,
         return Timeline(*(np.zeros(0) for _ in range(7)), np.zeros(0, np.int64), np.zeros(0))
     dur = mp.duration_s
     vc = mp.v_cruise_mm_s
-    nseg = np.maximum.reduce([np.ones(n), np.ceil(dur / dt_max_s - 1e-9),
-                              np.ceil(vc * dur / ds_max_mm - 1e-9)]).astype(np.int64)
-    nseg = np.where(dur > 0, nseg, 0)
+    nseg_f = np.maximum.reduce([np.ones(n), np.ceil(dur / dt_max_s - 1e-9), np.ceil(vc * dur / ds_max_mm - 1e-9)])
+    nseg_f = np.where(dur > 0, nseg_f, 0.0)
+    total = float(np.sum(nseg_f))
+    if not np.isfinite(total) or total > MAX_TIMELINE_SAMPLES:
+        k = int(np.argmax(~np.isfinite(nseg_f) | (nseg_f > MAX_TIMELINE_SAMPLES / 10))) if n else 0
+        raise UserError(f"the program is too long to plan (move {k + 1} alone would take {dur[k]:.3g} s): "
+                        "a corrupt E or F value?")
+    nseg = nseg_f.astype(np.int64)
     # a sample at the start of each move that begins a track, so s = 0 is on the track
     prev_track = np.concatenate([[-2], track[:-1]])
     starts_track = (track >= 0) & (track != prev_track)
