@@ -193,18 +193,19 @@ def _similarity_H(centre_mm, k_px_per_mm, theta_rad, mirrored, t_px):
     return H
 
 
-def coarse_search(gray, seg, nozzle_mm: float = 0.4, *, mirror: bool = True, top: int = 6,
+def coarse_search(gray, seg, nozzle_mm: float = 0.4, *, views=(False, True), top: int = 6,
                   px_per_mm: float = COARSE_PX_PER_MM, rotation_step_deg: float = ROTATION_STEP_DEG,
                   scale_step: float = SCALE_STEP, extent_fraction=EXTENT_FRACTION) -> list[Candidate]:
     """Stage 1 of the module docstring: the ``top`` best distinct similarity poses.
 
     gray       full-resolution picture, float32 0..1 (H, W)
     seg        :func:`path_segments` of the manifest
+    views      which views to search: False the direct (top-down) one, True the mirror view
     nozzle_mm  nozzle diameter: the picture is reduced so that a nozzle-wide bead is ~2 px
                before the line measure (:func:`ridge_maps`, sigma 1 px) is taken; the line
                strength is then pooled (area average) to ``px_per_mm``
-    Returns candidates with H (bed mm -> full-image px), best first by score (a
-    normalised cross-correlation, 0..1).
+    Returns up to ``top`` distinct candidates per view with H (bed mm -> full-image px),
+    best first by score (a normalised cross-correlation, 0..1) within each view.
     """
     Hh, W = gray.shape
     L = max(W, Hh)
@@ -218,7 +219,7 @@ def coarse_search(gray, seg, nozzle_mm: float = 0.4, *, mirror: bool = True, top
     T0 = rasterise_oriented((seg[0], seg[1], np.full(len(seg[2]), nozzle_mm)), r, origin, (n, n))
     sig_f, sig_c = 0.7, 4.0                                 # px at r
     angles = np.arange(0.0, 360.0, rotation_step_deg)
-    mirrors = (False, True) if mirror else (False,)
+    mirrors = tuple(views)
     templates = []
     for m in mirrors:
         # mirrored: bed +y down the image, directions reflected (phi -> -phi)
@@ -295,11 +296,14 @@ def coarse_search(gray, seg, nozzle_mm: float = 0.4, *, mirror: bool = True, top
                                        info={"centre_px": ctr_full, "centre_mm": centre}))
     found.sort(key=lambda c: -c.score)
     out: list[Candidate] = []
-    for c in found:
-        if all(not _same_pose(c, o, extent) for o in out):
-            out.append(c)
-        if len(out) >= top:
-            break
+    for m in mirrors:                                       # the best ``top`` of each view
+        kept: list[Candidate] = []
+        for c in found:
+            if c.mirrored == m and all(not _same_pose(c, o, extent) for o in kept):
+                kept.append(c)
+                if len(kept) >= top:
+                    break
+        out += kept
     return out
 
 
@@ -561,8 +565,8 @@ def find_pose(gray, manifest, *, hint_rotation_deg: float | None = None, mirror:
     hint_rotation_deg  optional rough rotation of the print in the picture (deg,
                        counter-clockwise, 0 = bed +x to the right): only +-25 deg around
                        it are kept
-    mirror             None: search the mirror view only when the direct view finds
-                       nothing convincing; True/False: always/never
+    mirror             None: search the direct and the mirror view (a print scanned face
+                       down); False: the direct view only; True: the mirror view only
     Returns {"H", "score", "second_score", "ambiguous", "scale_px_per_mm", "mirrored",
     "candidates", "time_s"}.
     """
@@ -576,21 +580,16 @@ def find_pose(gray, manifest, *, hint_rotation_deg: float | None = None, mirror:
     test_pts = np.concatenate([tr.points_mm for tr in tests]) if tests else np.concatenate([seg[0], seg[1]])
     results = []
 
-    def run(mirror_view: bool):
-        cands = coarse_search(gray, seg, nozzle, mirror=mirror_view, top=N_REFINE if not mirror_view
-                              else 2 * N_REFINE)
-        if mirror_view:
-            cands = [c for c in cands if c.mirrored][:N_REFINE]
-        if hint_rotation_deg is not None:
-            cands = [c for c in cands if abs((c.rotation_deg - hint_rotation_deg + 180) % 360 - 180) <= 25] or cands
-        for c in cands:
-            H, sc = refine_search(pyr, tmpl, c.H)
-            c.refined_score = sc
-            results.append((sc, H, c))
-
-    run(bool(mirror))
-    if mirror is None and max(r[0] for r in results) < MIN_SCORE:
-        run(True)
+    # a print scanned face down is seen mirrored; a mirror-image pose of a spiral pattern
+    # can score ~0.5 on the direct view, so both views compete unless told otherwise
+    views = {None: (False, True), False: (False,), True: (True,)}[mirror]
+    cands = coarse_search(gray, seg, nozzle, views=views, top=N_REFINE)
+    if hint_rotation_deg is not None:
+        cands = [c for c in cands if abs((c.rotation_deg - hint_rotation_deg + 180) % 360 - 180) <= 25] or cands
+    for c in cands:
+        H, sc = refine_search(pyr, tmpl, c.H)
+        c.refined_score = sc
+        results.append((sc, H, c))
     results.sort(key=lambda r: -r[0])
     best_sc, best_H, best_c = results[0]
     k = float(np.median(_local_scale(best_H, test_pts[:: max(1, len(test_pts) // 200)])))

@@ -54,13 +54,15 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         raise UserError("the manifest has no test tracks to measure; make it with `calib pattern` or `calib plan`")
     gray, color = load_image(image_path)
     reg = _register(gray, manifest, points)
-    meas = measure_widths(gray, manifest, reg, color=color)
     if reg.method.startswith("auto"):
-        # the automatic pose is refined once more on the bead centres it measured (ICP)
+        # the automatic pose is refined once more on the bead centres it measures (ICP;
+        # with stations every 1 mm instead of 0.25 mm the flatbed render's pose was 30x
+        # worse, so the full measurement runs twice)
         from measure.autoreg import refine_with_centres
-        t = meas.table
-        reg = refine_with_centres(reg, t.x_mm, t.y_mm, meas.nx, meas.ny, meas.centre_mm, t.valid)
-        meas = measure_widths(gray, manifest, reg, color=color)
+        m0 = measure_widths(gray, manifest, reg, color=color)
+        t = m0.table
+        reg = refine_with_centres(reg, t.x_mm, t.y_mm, m0.nx, m0.ny, m0.centre_mm, t.valid)
+    meas = measure_widths(gray, manifest, reg, color=color)
     table = meas.table
     cal = apparent_width_calibration(gray, color, manifest, reg)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
