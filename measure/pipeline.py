@@ -58,10 +58,14 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         # the automatic pose is refined once more on the bead centres it measures (ICP;
         # with stations every 1 mm instead of 0.25 mm the flatbed render's pose was 30x
         # worse, so the full measurement runs twice)
+        import time
+
         from measure.autoreg import refine_with_centres
+        t0 = time.perf_counter()
         m0 = measure_widths(gray, manifest, reg, color=color)
         t = m0.table
         reg = refine_with_centres(reg, t.x_mm, t.y_mm, m0.nx, m0.ny, m0.centre_mm, t.valid)
+        reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0
     meas = measure_widths(gray, manifest, reg, color=color)
     table = meas.table
     cal = apparent_width_calibration(gray, color, manifest, reg)

@@ -8,8 +8,9 @@ from pathlib import Path
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "measure", help="measure bead widths along the test tracks in a scan or photo",
-        description="Register the picture to the pattern (ArUco fiducials, or --points for prints "
-                    "without them), measure the bead width every 0.25 mm along every test track with a "
+        description="Register the picture to the pattern (ArUco fiducials; without them the planned "
+                    "path is found in the picture automatically, or --points gives the pose by hand), "
+                    "measure the bead width every 0.25 mm along every test track with a "
                     "one-sigma uncertainty, and write the widths CSV (plus a QA overlay and a JSON "
                     "summary on request). Exit code 2 with one line on bad input; no partial CSV.")
     p.add_argument("scan", help="the picture: JPEG, PNG or TIFF (8/16 bit), up to 50 MP")
@@ -17,7 +18,8 @@ def add_parser(subparsers):
     p.add_argument("-o", "--output", required=True, help="widths CSV to write")
     p.add_argument("--overlay", help="QA overlay PNG to write (tracks, measured edges, marker ids)")
     p.add_argument("--summary", help="JSON summary to write (residual, fraction valid, flags, warnings)")
-    p.add_argument("--points", help='point hints "x_mm,y_mm=u_px,v_px;..." (>= 4) for prints without fiducials')
+    p.add_argument("--points", help='point hints "x_mm,y_mm=u_px,v_px;..." (>= 4) for prints without fiducials '
+                   "(default: the pose is found automatically from the track layout)")
     p.add_argument("--max-residual-mm", type=float, default=0.1,
                    help="refuse a registration with a larger residual (mm; default 0.1)")
     return p
