@@ -2,25 +2,31 @@
 
 For third-party G-code (no ArUco markers) and as the fallback when the markers are not
 found. Nothing but the manifest's tracks (polylines with commanded widths) and the
-picture is used; three stages, coarse to fine:
+picture is used. The feature on both sides is a *line field*: line strength times
+exp(2i phi) of the line direction (:func:`ridge_maps`; Frangi et al. 1998 line measure,
+Granlund & Knutsson 1995 double-angle representation), taken where a nozzle-wide bead is
+~2 px. It ignores the plate's isotropic grain, keeps only the rim of broad logo strokes,
+serves light-on-dark and dark-on-light alike, and tells horizontal lines from vertical
+ones, which a plain intensity correlation did not (blocks of parallel lines matched
+turned by 90 deg on the realdata PLA photo). Stages, coarse to fine:
 
 1. Coarse pose search (template matching; Brown 1992, "A survey of image registration
-   techniques", exhaustive search over a transform family with FFT correlation for the
-   translation). The path is rasterised once at ``COARSE_PX_PER_MM`` (widths capped,
-   see :data:`MAX_TEMPLATE_WIDTH_NOZZLES`) and band-passed at bead scale; the picture is
-   reduced so that the pattern would have that same resolution for each scale
-   hypothesis (px/mm from the pattern extent and the image size), band-passed and
-   normalised by its local contrast. For every scale and every rotation (0-360 deg, and
-   the mirror view of a print scanned face down) the correlation over all translations
-   is one FFT product. A bright path on a dark plate peaks positive, a dark one on a
-   light plate negative, so one correlation tries both polarities.
-2. Local refinement of the best few candidates: the 8 homography entries maximise the
-   track-likeness along the projected centre lines (measure.register's ``_TrackImage``,
-   the refinement used after fiducials) on a ladder of blurs 4 -> 1 mm. The refined
-   score ranks the candidates; when two different poses score alike the picture is
-   ambiguous and the registration is refused.
-3. The winner is the start of :func:`measure.register.register` (``start_H``), whose
-   track-layout refinement runs to bead scale with lens distortion k1, k2.
+   techniques": exhaustive search over a transform family, FFT correlation for the
+   translation). The path's line field at ``COARSE_PX_PER_MM`` is correlated with the
+   picture's, reduced so that the pattern would have that resolution, for every scale
+   hypothesis (pattern extent vs image size, :data:`EXTENT_FRACTION`), every rotation
+   (0-360 deg) and both the direct and the mirror view (a print scanned face down);
+   normalised cross-correlation, so a busy spot is no match by loudness alone.
+2. The best :data:`N_REFINE` candidates of each view: pattern search (Hooke & Jeeves) of
+   scale, rotation, aspect, shear and perspective with the picture rectified into bed
+   coordinates, FFT for the translation, at 1 then 2.5 px/mm (:func:`refine_search`).
+   The final correlation ranks them; nothing above :data:`MIN_SCORE`, or a different
+   pose within :data:`AMBIGUOUS_RATIO` of the best, is refused by the caller.
+3. The winner starts :func:`measure.register.register` (``start_H``), whose track-layout
+   refinement runs to bead scale with lens distortion k1, k2 (:func:`auto_register`).
+4. After a width measurement, one ICP step moves the mapping so that the measured bead
+   centre lines lie on the planned path (:func:`refine_with_centres`; measure.pipeline
+   then measures again).
 
 All image coordinates are OpenCV's (pixel centres at integers, u right, v down); bed
 coordinates in mm (docs/ARCHITECTURE.md "Coordinate frames").
@@ -60,8 +66,7 @@ class Candidate:
     """One pose hypothesis: ``H`` bed mm -> full-image px, and its scores."""
 
     H: np.ndarray
-    score: float              # coarse normalised correlation (signed by polarity)
-    polarity: float           # +1 light plastic on a dark plate, -1 dark on light
+    score: float              # coarse normalised correlation of the line fields (0..1)
     mirrored: bool
     scale_px_per_mm: float
     rotation_deg: float
@@ -73,8 +78,8 @@ class Candidate:
 def path_segments(manifest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Printed segments of all extruding tracks: starts (N, 2) mm, ends (N, 2) mm and widths
     (N,) mm (the smaller of the two vertex widths; segments wider than
-    MAX_TEMPLATE_WIDTH_NOZZLES nozzle diameters are left out). Label tracks are left out (their text is drawn differently by every
-    slicer); an empty result raises UserError."""
+    MAX_TEMPLATE_WIDTH_NOZZLES nozzle diameters are left out). Label tracks are left out
+    (their text is drawn differently by every slicer); none at all raises UserError."""
     nozzle = float(manifest.printer.get("nozzle_diameter_mm", 0.4) or 0.4)
     cap = MAX_TEMPLATE_WIDTH_NOZZLES * nozzle
     a, b, w = [], [], []
@@ -291,7 +296,7 @@ def coarse_search(gray, seg, nozzle_mm: float = 0.4, *, views=(False, True), top
                 ctr_small = np.array([tu[j] + c_px, tv[i] + c_px])
                 ctr_full = (ctr_small + 0.5) / np.array([fx, fy]) - 0.5
                 H = _similarity_H(centre, s, np.deg2rad(a), m, ctr_full)
-                found.append(Candidate(H=H, score=float(C[i, j]), polarity=0.0, mirrored=m,
+                found.append(Candidate(H=H, score=float(C[i, j]), mirrored=m,
                                        scale_px_per_mm=float(s), rotation_deg=float(a),
                                        info={"centre_px": ctr_full, "centre_mm": centre}))
     found.sort(key=lambda c: -c.score)
