@@ -145,12 +145,13 @@ def deposit_pieces(manifest, vp, *, string_min_mm: float = 0.02, string_max_mm: 
     uy = np.divide(np.diff(y[:n + 1]), L, out=np.zeros(n), where=L > 0)
 
     def runs(mask):
-        """Consecutive intervals, cut at raster U-turns (> 100 deg) so that neighbouring
-        lines of one raster add up where they touch (as in render._track_pieces)."""
+        """Consecutive intervals, cut at turns > 60 deg (a marker's serpentine turns in
+        two 90-degree steps) so that neighbouring lines of one raster add up where they
+        touch (as in render._track_pieces)."""
         idx = np.flatnonzero(mask)
         if len(idx) == 0:
             return []
-        turn = ux[idx[1:]] * ux[idx[:-1]] + uy[idx[1:]] * uy[idx[:-1]] < np.cos(np.deg2rad(100.0))
+        turn = ux[idx[1:]] * ux[idx[:-1]] + uy[idx[1:]] * uy[idx[:-1]] < np.cos(np.deg2rad(60.0))
         cut = np.flatnonzero((np.diff(idx) > 1) | turn) + 1
         return np.split(idx, cut)
 

@@ -275,7 +275,9 @@ def _track_pieces(track, widths: WidthTable | None, step_mm: float = 0.25, turn_
     commanded widths. A segment with zero width at both ends (coasting, travel inside the
     track) is not drawn and ends the piece; a turn sharper than ``turn_deg`` (raster
     U-turns) starts a new piece, so neighbouring raster lines add up instead of leaving a
-    half-coverage seam where one bead's max-distance union would meet itself.
+    half-coverage seam where one bead's max-distance union would meet itself. Furniture
+    (markers, labels) turns at 60 deg: a marker's serpentine makes its U-turns as two
+    90-degree turns (patterns/fiducials.py raster_chains).
     """
     pts, cl = track.points_mm, track.cumlen_mm
     tab = None
@@ -286,7 +288,7 @@ def _track_pieces(track, widths: WidthTable | None, step_mm: float = 0.25, turn_
             tab = widths.s_mm[sel][order], widths.width_mm[sel][order]
     pieces, cur_seg, cur_w = [], [], []
     last_dir = None
-    cos_turn = np.cos(np.deg2rad(turn_deg))
+    cos_turn = np.cos(np.deg2rad(turn_deg if track.kind == "test" else min(turn_deg, 60.0)))
 
     def flush():
         if cur_seg:
