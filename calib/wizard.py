@@ -230,8 +230,8 @@ def _exports(ask: Asker, r, profile, fit_json: Path) -> None:
     for t in picked:
         if t == "none":
             continue
-        target = ask.ask(f"file to update for {t} (printer.cfg, preset, start G-code; blank: just "
-                         "print it)", "")
+        target = "" if t == "spoolman" else ask.ask(     # Spoolman: printed, no file
+            f"file to update for {t} (printer.cfg, preset, start G-code; blank: just print it)", "")
         argv = ["export", fit_json, "--to", t] + (["--profile", target] if target else [])
         try:
             r.step(f"export for {t}", argv)

@@ -1,4 +1,4 @@
-"""`calib export fit.json --to klipper|marlin|rrf|orca|kisslicer [--profile FILE]`.
+"""`calib export fit.json --to klipper|marlin|rrf|orca|kisslicer|spoolman [--profile FILE]`.
 
 A fit that fit/trust.py calls not trustworthy (misfit, a value on a prior bound, rival
 modes, not converged) is refused with one line and exit 2 unless ``--force``; warnings go
@@ -16,6 +16,10 @@ another kind than the target edits is refused with one line:
   prusa    PrusaSlicer/SuperSlicer filament ini: M572 S inside start_filament_gcode
   kisslicer   material .ini: ``matl_viscosity_over_elasticity_us=`` (KISSlicer 2's VE key,
               seed 000; a ``viscoelasticity_us=`` line from older calib versions is replaced)
+  spoolman    no file: stdout is the JSON body of Spoolman's PATCH /api/v1/spool/{id} with the
+              spool extra field (--field-key, default pressure_advance) set to the Klipper PA as
+              a JSON-encoded float string; stderr: the once-only field definition and curl lines
+              (calib/spoolman.py); --profile is refused
 
 Width-optimal value (fit/firmware_match.py): for the pressure-advance targets the fitted
 dynamics are simulated on a reference print (the standard move mix, or ``--on
@@ -39,7 +43,7 @@ import numpy as np
 from calib.errors import UserError
 
 TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf", "orca",
-           "orca-adaptive", "prusa", "kisslicer")
+           "orca-adaptive", "prusa", "kisslicer", "spoolman")
 
 
 def add_parser(sub):
@@ -47,7 +51,8 @@ def add_parser(sub):
         "export", help="print or write the fitted pressure advance for a firmware or slicer",
         description="Turn fit.json into the firmware/slicer setting: Klipper pressure_advance, "
                     "Marlin M900 K, RRF M572 S, OrcaSlicer filament pressure_advance, KISSlicer "
-                    "VE. With --profile the file is updated in place after a timestamped backup.")
+                    "VE, a Spoolman spool extra field. With --profile the file is updated in place "
+                    "after a timestamped backup.")
     p.add_argument("fit", help="fit.json from `calib fit`")
     p.add_argument("--to", required=True, choices=TARGETS, help="target firmware or slicer")
     p.add_argument("--profile", help="file to update in place (printer.cfg, filament .json, ...)")
@@ -61,6 +66,11 @@ def add_parser(sub):
                    help="choose the PA that minimises the predicted width error of this G-code "
                         "(a sliced print; its first 90 s of printing) instead of the standard move "
                         "mix (4 L-shaped lines with starts, stops and corners at 25-150 mm/s)")
+    p.add_argument("--spool-id", type=int, metavar="N",
+                   help="Spoolman: the spool's id, used in the curl example on stderr")
+    p.add_argument("--field-key", default="pressure_advance", metavar="KEY",
+                   help="Spoolman: the spool extra field's key (a-z, 0-9, _; default "
+                        "pressure_advance)")
     p.add_argument("--force", action="store_true",
                    help="export a fit that is not trustworthy (misfit, value on a prior bound, "
                         "rival modes, not converged); the reasons still go to stderr")
@@ -73,7 +83,7 @@ FIRMWARE_TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", 
 KLIPPER_SMOOTH_TIME_S = 0.040
 #: targets whose firmware value comes from (or is compared in) the width match
 MATCH_TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf",
-                 "prusa", "orca", "orca-adaptive")
+                 "prusa", "orca", "orca-adaptive", "spoolman")
 #: posterior draws simulated per export (each one optimised: ~0.01-0.3 s a draw); 32 gave
 #: 95 % intervals of the optimal K that missed the truth's in 2 of 3 bench seeds by a hair
 MATCH_DRAWS = 64
@@ -526,6 +536,16 @@ def run(args) -> int:
     from fit.result import load_fit_json
 
     doc = load_fit_json(args.fit)
+    spool = args.to == "spoolman"
+    if spool:                 # argument errors before the fit is judged or simulated
+        from calib import spoolman
+
+        if args.profile:
+            raise UserError("--profile: --to spoolman edits no file; it prints the body of "
+                            "Spoolman's PATCH /api/v1/spool/{id} (drop --profile)")
+        spoolman.check_key(args.field_key)
+        if args.spool_id is not None and args.spool_id < 1:
+            raise UserError(f"--spool-id {args.spool_id}: Spoolman spool ids start at 1")
     check_trust(doc, args.force)
     if args.on and args.to not in MATCH_TARGETS:
         raise UserError(f"--on chooses a pressure-advance value; --to {args.to} has none "
@@ -550,9 +570,11 @@ def run(args) -> int:
             raise UserError(f"cannot read profile {path}: {exc}") from None
         check_kind(path, text, args.to)
     if args.to in MATCH_TARGETS:
-        m = width_match(doc, args.to, args.on)
+        # the spool field holds the value Klipper macros apply: Klipper's width match
+        as_target = "klipper" if spool else args.to
+        m = width_match(doc, as_target, args.on)
         if m is not None:
-            report_match(m, args.to)
+            report_match(m, as_target)
             doc = with_match(doc, m)
     warn = firmware_warning(doc, args.to)
     if warn:
@@ -565,6 +587,16 @@ def run(args) -> int:
         print("calib export: note: pressure_advance_model is in Kalico's bleeding-edge-v2 branch, "
               "not in its main branch (checked 2026-11); stock Klipper rejects these options",
               file=sys.stderr)
+    if spool:
+        k = pa_value(doc)
+        define, patch = spoolman.curl_lines(k, args.field_key, args.spool_id)
+        print(json.dumps(spoolman.patch_body(k, args.field_key)))
+        print(f"calib export: once per Spoolman, define the float spool field: {define}",
+              file=sys.stderr)
+        note = ("" if "klipper_smooth_time_s" not in (doc.get("derived") or {}) else
+                f" (the value is for pressure_advance_smooth_time {smooth_time_s(doc):.3f} s)")
+        print(f"calib export: then set it on the spool: {patch}{note}", file=sys.stderr)
+        return 0
     if not args.profile:
         print(snippet(doc, args.to, args.section, args.tool))
         if args.to == "marlin":
