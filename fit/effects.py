@@ -385,25 +385,27 @@ def _nan_to(arr, value):
     return np.where(np.isfinite(a), a, value)
 
 
-def _smoothed(ctx, key, f, smooth_s):
-    """f (at the timeline nodes) convolved with a triangular window of total width
-    smooth_s (= two boxes of smooth_s/2), on a 0.5 ms grid; cached in ctx."""
-    ck = ("fw_smooth", key, smooth_s)
-    if ck in ctx.cache:
-        return ctx.cache[ck]
+def triangular_smooth(t_s, f, smooth_s: float) -> np.ndarray:
+    """f(t) convolved with Klipper's pressure-advance smoothing window: a triangle of
+    total width smooth_s (s), i.e. two boxes of smooth_s/2, on a <= 0.5 ms grid."""
     if smooth_s <= 0:
-        res = np.asarray(f, float)
-    else:
-        t = ctx.t_s
-        step = min(5e-4, smooth_s / 20)
-        grid = np.arange(t[0] - smooth_s, t[-1] + smooth_s + step, step)
-        g = np.interp(grid, t, f)
-        nb = max(int(round(0.5 * smooth_s / step)), 1)
-        box = np.ones(nb) / nb
-        g = np.convolve(np.convolve(g, box, mode="same"), box, mode="same")
-        res = np.interp(t, grid, g)
-    ctx.cache[ck] = res
-    return res
+        return np.asarray(f, float)
+    t = np.asarray(t_s, float)
+    step = min(5e-4, smooth_s / 20)
+    grid = np.arange(t[0] - smooth_s, t[-1] + smooth_s + step, step)
+    g = np.interp(grid, t, f)
+    nb = max(int(round(0.5 * smooth_s / step)), 1)
+    box = np.ones(nb) / nb
+    g = np.convolve(np.convolve(g, box, mode="same"), box, mode="same")
+    return np.interp(t, grid, g)
+
+
+def _smoothed(ctx, key, f, smooth_s):
+    """:func:`triangular_smooth` of f at the timeline nodes, cached in ctx."""
+    ck = ("fw_smooth", key, smooth_s)
+    if ck not in ctx.cache:
+        ctx.cache[ck] = triangular_smooth(ctx.t_s, f, smooth_s)
+    return ctx.cache[ck]
 
 
 @register_effect

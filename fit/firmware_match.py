@@ -57,7 +57,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.optimize import minimize, minimize_scalar
 
 from calib.errors import UserError
-from fit.effects import Effect, _pa_velocity
+from fit.effects import Effect, _pa_velocity, triangular_smooth
 from fit.params import Param
 
 #: head speeds (mm/s) of the standard reference print's lines
@@ -161,7 +161,7 @@ def _advance(mode, k, off, vl, v, k_nodes):
 
 def _smooth(ctx, key, f, smooth_s):
     """f at the nodes convolved with Klipper's triangular window of total width smooth_s
-    (two boxes of smooth_s / 2) on a 0.5 ms grid (as fit.effects._smoothed); at most a
+    (two boxes of smooth_s / 2), fit.effects.triangular_smooth; at most a
     few windows kept in ctx.cache, since the optimiser tries many."""
     if smooth_s <= 0:
         return np.asarray(f, float)
@@ -169,14 +169,7 @@ def _smooth(ctx, key, f, smooth_s):
     ck = (key, smooth_s)
     if ck in cache:
         return cache[ck]
-    t = ctx.t_s
-    step = min(5e-4, smooth_s / 20)
-    grid = np.arange(t[0] - smooth_s, t[-1] + smooth_s + step, step)
-    g = np.interp(grid, t, f)
-    nb = max(int(round(0.5 * smooth_s / step)), 1)
-    box = np.ones(nb) / nb
-    g = np.convolve(np.convolve(g, box, mode="same"), box, mode="same")
-    res = np.interp(t, grid, g)
+    res = triangular_smooth(ctx.t_s, f, smooth_s)
     if len(cache) >= 8:
         cache.pop(next(iter(cache)))
     cache[ck] = res

@@ -133,6 +133,12 @@ def unproject_grid(Hinv, cx, cy, f, k1, k2, width, height, ss, X, Y):  # pragma:
 
 
 @njit(cache=True)
+def _window(bbox, k0, k1):  # pragma: no cover - numba
+    """Sub-pixel window (i0, i1, j0, j1) covering the segments k0..k1 of one bead."""
+    return bbox[k0:k1, 0].min(), bbox[k0:k1, 1].max(), bbox[k0:k1, 2].min(), bbox[k0:k1, 3].max()
+
+
+@njit(cache=True)
 def _nearest_field(X, Y, seg, segw, bbox, k0, k1, i0, j0, E, Wd, OX, OY):  # pragma: no cover - numba
     """For the sub-pixels of one bead (segments k0..k1, window offset i0, j0): signed
     distance inside the edge E = w/2 - d (mm) to the nearest segment (largest E wins),
@@ -179,10 +185,7 @@ def _track_coverage(X, Y, seg, segw, bbox, starts, track_sigma, alpha):  # pragm
         k0, k1 = starts[t], starts[t + 1]
         if k1 <= k0:
             continue
-        i0 = bbox[k0:k1, 0].min()
-        i1 = bbox[k0:k1, 1].max()
-        j0 = bbox[k0:k1, 2].min()
-        j1 = bbox[k0:k1, 3].max()
+        i0, i1, j0, j1 = _window(bbox, k0, k1)
         if i1 <= i0 or j1 <= j0:
             continue
         E = np.full((j1 - j0, i1 - i0), -1e9, dtype=np.float32)
@@ -217,10 +220,7 @@ def _track_profile(X, Y, seg, segw, bbox, starts, track_h, aa_mm, hv, p_spec, am
         k0, k1 = starts[t], starts[t + 1]
         if k1 <= k0:
             continue
-        i0 = bbox[k0:k1, 0].min()
-        i1 = bbox[k0:k1, 1].max()
-        j0 = bbox[k0:k1, 2].min()
-        j1 = bbox[k0:k1, 3].max()
+        i0, i1, j0, j1 = _window(bbox, k0, k1)
         if i1 <= i0 or j1 <= j0:
             continue
         E = np.full((j1 - j0, i1 - i0), -1e9, dtype=np.float32)

@@ -12,12 +12,12 @@ from __future__ import annotations
 import json
 import re
 
-import numpy as np
 import pytest
 
 from calib.cli import main
 from calib.spoolman import patch_body
 from patterns.profile import load_profile
+from test_export_match import fit_doc as match_fit_doc
 
 PROF = load_profile("direct_drive")
 TAU = 0.04
@@ -45,21 +45,9 @@ def spoolman_patch_ok(body, key: str) -> float:
     return spoolman_float_value(extra[key])
 
 
-def fit_doc(values: dict, spec: str, n=12, rel_sd=0.02, seed=1) -> dict:
-    """fit.json of a trustworthy fit whose draws scatter ``rel_sd`` around ``values``."""
-    rng = np.random.default_rng(seed)
-    names = list(values)
-    S = np.array([[values[k] * (1 + rel_sd * rng.standard_normal()) for k in names] for _ in range(n)])
-    return {"schema": "calib.fit/1", "model": spec, "converged": True,
-            "information": {"chi2_nu": 1.0, "rms_mm": 0.01, "n_obs": 500, "loo": {}},
-            "param_names": names,
-            "params": {k: {"median": float(np.median(S[:, j])),
-                           "ci95": [float(np.min(S[:, j])), float(np.max(S[:, j]))]}
-                       for j, k in enumerate(names)},
-            "priors": {"pa.tau_s": {"kind": "loguniform", "lower": 0.005, "upper": 5.0}},
-            "derived": {"pressure_advance_s": {"median": float(np.median(S[:, 0]))},
-                        "tested_flow_mm3_s": {"lo": 0.5, "hi": 20.0}},
-            "profile": PROF.to_dict(), "samples": S.tolist()}
+def fit_doc(values: dict, spec: str, n=12, **kw) -> dict:
+    """test_export_match's trustworthy fit.json, with the tested flow range recorded."""
+    return match_fit_doc(values, spec, n=n, derived={"tested_flow_mm3_s": {"lo": 0.5, "hi": 20.0}}, **kw)
 
 
 @pytest.fixture
