@@ -19,7 +19,7 @@ compensation, per posterior draw:
           = LA v + off v / (v + v_lin)            Kalico "recipr"
           = K(q_move) v                           Orca adaptive PA: K from the table at
             the commanded flow q_move (mm^3/s) of the move being printed (PCHIP between
-            rows, the end slope continued outside; rounded to 0.001 s as Orca does), kept
+            rows, the end rows' K held outside; rounded to 0.001 s, as Orca does), kept
             over travels until the next printing move (Orca emits a PA command per move
             whose flow changes)
 
@@ -53,7 +53,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
 from scipy.optimize import minimize, minimize_scalar
 
 from calib.errors import UserError
@@ -177,20 +176,31 @@ def _smooth(ctx, key, f, smooth_s):
 
 
 def orca_table_k(flow_mm3_s, table_flow_mm3_s, table_k_s) -> np.ndarray:
-    """K (s) Orca's adaptive PA uses at flows q (mm^3/s) from a table (flows ascending):
-    PCHIP between rows, the end slope continued outside, clipped at 0, rounded to 0.001 s
-    (Orca's AdaptivePAInterpolator rounds to three decimals)."""
+    """K (s) Orca's adaptive PA uses at flows q (mm^3/s) from one acceleration's table rows
+    (flows ascending), by Orca's own rules (OrcaSlicer src/libslic3r/PchipInterpolator.cpp,
+    GCode/AdaptivePAInterpolator.cpp): PCHIP between rows with the weighted harmonic mean
+    slopes inside and the end secants at the ends, the first/last row's K held outside
+    the table (no extrapolation), rounded to 0.001 s."""
     q = np.asarray(flow_mm3_s, float)
-    fq, kk = np.asarray(table_flow_mm3_s, float), np.asarray(table_k_s, float)
-    if len(fq) == 1:
-        return np.round(np.full(q.shape, kk[0]), 3)
-    pc = PchipInterpolator(fq, kk, extrapolate=False)
-    out = pc(np.clip(q, fq[0], fq[-1]))
-    d = pc.derivative()
-    lo, hi = q < fq[0], q > fq[-1]
-    out = np.where(lo, kk[0] + d(fq[0]) * (q - fq[0]), out)
-    out = np.where(hi, kk[-1] + d(fq[-1]) * (q - fq[-1]), out)
-    return np.round(np.maximum(out, 0.0), 3)
+    x, y = np.asarray(table_flow_mm3_s, float), np.asarray(table_k_s, float)
+    if len(x) == 1:
+        return np.round(np.full(q.shape, y[0]), 3)
+    h = np.diff(x)
+    delta = np.diff(y) / h
+    d = np.empty(len(x))
+    d[0], d[-1] = delta[0], delta[-1]
+    for i in range(1, len(x) - 1):
+        if delta[i - 1] * delta[i] > 0:
+            w1, w2 = 2 * h[i] + h[i - 1], h[i] + 2 * h[i - 1]
+            d[i] = (w1 + w2) / (w1 / delta[i - 1] + w2 / delta[i])
+        else:
+            d[i] = 0.0
+    qc = np.clip(q, x[0], x[-1])
+    i = np.clip(np.searchsorted(x, qc, side="left") - 1, 0, len(x) - 2)
+    t = (qc - x[i]) / h[i]
+    out = ((2 * t ** 3 - 3 * t ** 2 + 1) * y[i] + (t ** 3 - 2 * t ** 2 + t) * h[i] * d[i]
+           + (-2 * t ** 3 + 3 * t ** 2) * y[i + 1] + (t ** 3 - t ** 2) * h[i] * d[i + 1])
+    return np.round(out, 3)
 
 
 def _table_k_nodes(ctx, table_flow, table_k) -> np.ndarray:

@@ -171,3 +171,14 @@ def test_extrapolation_warning_when_the_reference_flows_exceed_the_tested_ones(t
                  "wide.json")
     assert main(["export", wide, "--to", "marlin"]) == 0
     assert "reaches" not in capsys.readouterr().err
+
+
+def test_orca_table_lookup_follows_orcas_rules():
+    """OrcaSlicer's AdaptivePAInterpolator: PCHIP between rows (exact on a straight line),
+    the end rows' K held outside the table (no extrapolation), rounded to 0.001 s."""
+    x = np.array([2.0, 5.0, 9.0, 14.0])
+    lin = 0.06 - 0.002 * x
+    q = np.array([0.5, 2.0, 3.3, 7.7, 14.0, 30.0])
+    np.testing.assert_allclose(fm.orca_table_k(q, x, lin), np.round(0.06 - 0.002 * np.clip(q, 2, 14), 3))
+    k = fm.orca_table_k(np.linspace(2, 14, 200), x, np.array([0.05, 0.041, 0.036, 0.035]))
+    assert np.all(np.diff(k) <= 0) and np.all(np.round(k * 1000) == k * 1000)   # monotone (PCHIP), 3 decimals
