@@ -158,6 +158,9 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
                             "(a few samples drive the fit); look at the QA overlay for blobs or "
                             "mis-registered track ends")
 
+    # widths that are apparent widths (fit/measurement.py): worth reading, not blocking
+    cautions += list((doc.get("diagnostics") or {}).get("measurement", {}).get("notes", []))
+
     if any("does not fit" in p for p in problems) or structured:
         advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
                   "missing effect, then fit the model it names")

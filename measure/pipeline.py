@@ -8,6 +8,7 @@ caller saves the CSV and summary (so a failed check leaves no partial output).
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from collections import Counter
 from dataclasses import dataclass
 
@@ -161,6 +162,13 @@ def _register(gray, manifest, points) -> Registration:
             reg.info["refusal"] = f"{why}, and {reg.info['refusal']}"
         reg.warnings.append(f"{why}; registered automatically from the track layout instead")
         return reg
+
+
+def summary_path_for(widths_path):
+    """``widths.csv`` -> ``widths.summary.json``: the summary `calib measure` always writes
+    next to the widths, which `calib fit` reads for the apparent-width calibration."""
+    p = Path(widths_path)
+    return p.with_name(p.stem + ".summary.json")
 
 
 def save_summary(path, summary: dict) -> None:

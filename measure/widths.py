@@ -329,7 +329,9 @@ def _track_median(track, values, ok):
     """Per-station median of ``values`` over the good stations of its track (global
     median where a track has none)."""
     out = np.full(len(track), np.nan)
-    glob = np.median(values[ok]) if ok.any() else np.nanmedian(values)
+    finite = np.isfinite(values)
+    # a picture of something else can leave no finite value at all: NaN, without a warning
+    glob = np.median(values[ok]) if ok.any() else (np.median(values[finite]) if finite.any() else np.nan)
     for tid in np.unique(track):
         on = track == tid
         good = on & ok

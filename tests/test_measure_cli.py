@@ -29,6 +29,8 @@ def test_measure_writes_csv_overlay_and_summary(scan, capsys):
     e = (tb.width_mm - r.table.width_mm)[tb.valid]
     assert np.sqrt(np.mean(e ** 2)) < 0.01
     s = json.loads((d / "s.json").read_text())
+    # the sidecar `calib fit` reads is written whatever --summary says (fit/measurement.py)
+    assert json.loads((d / "w.summary.json").read_text()) == s and "apparent_width" in s
     assert s["registration"]["residual_mm"] < 0.05 and s["fraction_valid"] > 0.95
     assert s["registration"]["marker_ids"] == [0, 1, 2, 3] and s["samples"] == len(tb)
     qa = cv2.imread(str(d / "qa.png"))

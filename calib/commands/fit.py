@@ -88,10 +88,20 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     if model_spec == "auto":
         auto = choose_model(pairs, effects, extra, seed=seed, progress=progress, chi2_max=chi2_max)
         model_spec = auto.model
+    from fit import measurement
+
     data = FitData.load(pairs)
-    overrides = load_priors_file(priors) if priors else None
+    user = load_priors_file(priors) if priors else {}
     noise = NoiseOptions(ar1=ar1, student_nu=student_nu)
-    problem = make_problem(model_spec, data, noise, overrides, extra)
+    problem = make_problem(model_spec, data, noise, user or None, extra)
+    # what `calib measure` said of its widths: scan_bias priors, and a caution (fit/measurement.py)
+    states = measurement.scan_states(data)
+    cal = {k: v for k, v in measurement.prior_overrides(states, problem.param_names).items() if k not in user}
+    if cal:
+        problem = make_problem(model_spec, data, noise, {**cal, **user}, extra)
+    meas_notes = measurement.notes(states, any(n.startswith("scan_bias.") for n in problem.param_names))
+    for n in meas_notes:
+        print(f"calib fit: {n}", file=sys.stderr)
     m = fit_map(problem, seed=seed, global_search=True)
     if map_only:
         m.model = model_spec
@@ -117,6 +127,8 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     from fit.trust import assess, residual_structure
 
     res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
+    res.diagnostics["measurement"] = {"scans": states, "notes": meas_notes,
+                                      "scan_bias_priors": cal}
     res.trust = assess(res.to_json(), chi2_max=chi2_max).to_json()
     return res, problem
 

@@ -26,7 +26,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from measure.pipeline import MeasureRefused, measure_scan, save_summary
+    from measure.pipeline import MeasureRefused, measure_scan, save_summary, summary_path_for
     from patterns.manifest import Manifest
     from calib.errors import UserError
 
@@ -41,8 +41,10 @@ def run(args) -> int:
         shown = _write_qa(args, man, exc.result)
         raise UserError(str(exc) + (f" (see {', '.join(shown)})" if shown else
                                     " (add --overlay qa.png to see why)")) from None
-    # the CSV only once every check passed
+    # the CSV only once every check passed; its summary sidecar tells `calib fit` whether
+    # the widths are calibrated (measure/calibrate.py), whatever --summary says
     res.table.save(args.output)
+    save_summary(summary_path_for(args.output), res.summary)
     _write_qa(args, man, res)
     s = res.summary
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "

@@ -1,0 +1,76 @@
+"""What `calib measure` said about its widths, as the fit needs it.
+
+`calib measure` writes ``WIDTHS.summary.json`` next to every widths CSV; its
+``apparent_width`` block (measure/calibrate.py) says whether the widths were corrected
+from apparent to physical width and how well the edge offset b0 is known. The fit uses it
+in two ways (issue #11 item 5, first step):
+
+* the prior of the scan's ``scan_bias.b0_mm`` (fit/effects.py ScanBias) when the model has
+  that effect: normal(0, max(sd_b0, 1 um)) for calibrated widths (the offset left is the
+  calibration's own error), normal(0, UNCALIBRATED_SD_MM) for apparent widths (an edge
+  offset of tens of um, measured on realistic renders: bench_realism);
+* a caution in the trust verdict when a scan's widths are apparent and the model has no
+  ``scan_bias``: an offset common to all widths can pass for back-pressure or flow.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+#: Prior sd (mm) of scan_bias.b0_mm for widths that are not calibrated.
+UNCALIBRATED_SD_MM = 0.03
+#: Floor (mm) on the prior sd from a calibration.
+MIN_SD_MM = 0.001
+
+
+def load_calibration(widths_path) -> dict | None:
+    """The ``apparent_width`` block of the summary next to ``widths_path`` (None if there is
+    no readable summary: widths from elsewhere, or an older calib)."""
+    p = Path(widths_path)
+    s = p.with_name(p.stem + ".summary.json")
+    try:
+        doc = json.loads(s.read_text())
+    except (OSError, ValueError):
+        return None
+    cal = doc.get("apparent_width") if isinstance(doc, dict) else None
+    return cal if isinstance(cal, dict) else None
+
+
+def scan_states(data) -> list[dict]:
+    """Per scan of ``data`` (fit.data.FitData): name, widths path, calibration block or None."""
+    out = []
+    for sc in data.scans:
+        w = (getattr(sc, "source", None) or {}).get("widths")
+        out.append({"scan": sc.name, "widths": w, "calibration": load_calibration(w) if w else None})
+    return out
+
+
+def prior_overrides(states: list[dict], param_names) -> dict[str, dict]:
+    """Prior overrides (fit.priors.load_priors_file format) for the scans' scan_bias.b0_mm."""
+    names = set(param_names)
+    out = {}
+    for st in states:
+        cal = st["calibration"]
+        if cal is None:
+            continue
+        for name in (f"scan_bias.b0_mm@{st['scan']}", "scan_bias.b0_mm"):
+            if name in names:
+                sd = cal.get("offset_sd_mm") if cal.get("applied") else None
+                sd = max(float(sd), MIN_SD_MM) if sd else UNCALIBRATED_SD_MM
+                out[name] = {"prior": "normal", "mu": 0.0, "sd": sd}
+                break
+    return out
+
+
+def notes(states: list[dict], has_scan_bias: bool) -> list[str]:
+    """One plain sentence per scan whose widths are apparent widths."""
+    out = []
+    for st in states:
+        cal = st["calibration"]
+        if cal is None or cal.get("applied"):
+            continue
+        tail = ("scan_bias carries it with a wide prior" if has_scan_bias else
+                "an offset common to all widths can pass for back-pressure or flow: add scan_bias to the model")
+        why = (cal.get("note") or "not calibrated").split(";")[0]
+        out.append(f"{st['scan']}: widths are apparent widths ({why}); {tail}")
+    return out
