@@ -23,6 +23,9 @@ from measure.widths import WidthMeasurement, measure_widths
 
 #: Below this fraction of valid samples the picture is probably not of this pattern.
 MIN_VALID_FRACTION = 0.2
+#: Below this scale a 0.4 mm bead spans < 4 px and the edge pair's width and blur cannot be
+#: told apart (a 200 dpi scan: 7.9 px/mm); 300 dpi is 11.8 px/mm.
+MIN_PX_PER_MM = 10.0
 
 
 class MeasureRefused(UserError):
@@ -115,6 +118,11 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         summary["automatic_registration"] = reg.info
     result = MeasureResult(table=table, registration=reg, summary=summary, measurement=meas, color=color)
     refusal = reg.info.get("refusal")        # the automatic pose found nothing convincing
+    ppmm = _resolution_px_per_mm(reg, table)
+    summary["resolution_px_per_mm"] = ppmm
+    if refusal is None and ppmm < MIN_PX_PER_MM:
+        refusal = (f"the print is imaged at {ppmm:.1f} px/mm ({ppmm * 25.4:.0f} dpi): widths need at least "
+                   f"{MIN_PX_PER_MM:g} px/mm; scan at 300-1200 dpi or take the photo closer")
     if refusal is None and valid_frac < MIN_VALID_FRACTION:
         refusal = (f"only {valid_frac:.0%} of the samples could be measured: the picture does not show "
                    "this pattern's tracks where the registration puts them (wrong pattern, or wrong "
@@ -129,6 +137,14 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         from measure.overlay import draw_overlay, save_overlay
         save_overlay(overlay_path, draw_overlay(color, manifest, reg, meas))
     return result
+
+
+def _resolution_px_per_mm(reg, table) -> float:
+    """Median image scale (px/mm) over the test-track stations."""
+    xy = np.column_stack([table.x_mm, table.y_mm])
+    if not len(xy):
+        return float("nan")
+    return float(np.median(reg.px_per_mm(xy[:: max(1, len(xy) // 500)])))
 
 
 def apparent_width_calibration(gray, color, manifest, reg):

@@ -68,6 +68,10 @@ def test_bad_inputs_exit_2_with_one_line_and_no_csv(scan, capsys):
     assert "is it a picture of another pattern?" in _run_bad(d, "scan.png", capsys, manifest="other.manifest.json")
     msg = _run_bad(d, "scan.png", capsys, "--max-residual-mm", "0.00001")
     assert "is above --max-residual-mm 1e-05" in msg and "add --overlay" in msg
+    # the same scan at 200 dpi: registered, then refused for its resolution, with the overlay
+    cv2.imwrite(str(d / "dpi200.png"), cv2.resize(r.image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+    msg = _run_bad(d, "dpi200.png", capsys, "--overlay", str(d / "dpi200_qa.png"))
+    assert "7.9 px/mm (200 dpi)" in msg and "at least 10 px/mm" in msg and (d / "dpi200_qa.png").is_file()
     # a refused measurement still writes the overlay and summary that show why (no CSV)
     qa, summ = d / "refused_qa.png", d / "refused.json"
     msg = _run_bad(d, "scan.png", capsys, "--max-residual-mm", "0.00001", "--overlay", str(qa),
@@ -79,3 +83,14 @@ def test_bad_inputs_exit_2_with_one_line_and_no_csv(scan, capsys):
     assert "at least 4 are needed" in _run_bad(d, "scan.png", capsys, "--points", "1,2=3,4")
     # a hint that starts with '-' (centre-origin beds) reaches the measurement, not argparse
     assert "at least 4 are needed" in _run_bad(d, "scan.png", capsys, "--points", "-70,0=704,1478")
+
+
+def test_an_upside_down_scan_is_measured_like_the_right_way_up(scan, capsys):
+    """A print laid on the glass turned 180 deg is not bad input: the markers give the turn."""
+    d, r = scan
+    cv2.imwrite(str(d / "turned.png"), cv2.rotate(r.image, cv2.ROTATE_180))
+    assert main(["measure", str(d / "turned.png"), "--manifest", str(d / "p.manifest.json"),
+                 "-o", str(d / "turned.csv")]) == 0
+    tb = WidthTable.load(d / "turned.csv")
+    e = (tb.width_mm - r.table.width_mm)[tb.valid]
+    assert tb.valid.mean() > 0.9 and np.sqrt(np.mean(e ** 2)) < 0.01
