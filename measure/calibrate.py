@@ -159,10 +159,12 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2) -> W
         cal.warnings.append(f"width reference {r['width_commanded_mm']:.2f} mm still changes by "
                             f"{r['trend_mm'] * 1000:+.0f} um within its settled part: the flow had not "
                             "settled (long Bowden, thermal ooze?)")
-    if any(abs(r["trend_mm"]) > MAX_TREND_MM for r in unsettled) or cal.offset_sd_mm > MAX_OFFSET_SD_MM:
-        cal.note = (f"apparent-width calibration not applied: the width reference had not settled "
-                    f"(offset {b0 * 1000:+.0f} +- {cal.offset_sd_mm * 1000:.0f} um); widths are apparent "
-                    "widths, add scan_bias to the model")
+    drifting = any(abs(r["trend_mm"]) > MAX_TREND_MM for r in unsettled)
+    if drifting or cal.offset_sd_mm > MAX_OFFSET_SD_MM:
+        why = ("the width reference had not settled" if drifting else
+               "the width reference's sections disagree")
+        cal.note = (f"apparent-width calibration not applied: {why} (offset {b0 * 1000:+.0f} +- "
+                    f"{cal.offset_sd_mm * 1000:.0f} um); widths are apparent widths, add scan_bias to the model")
         return cal
     if not 0.7 <= g <= 1.3:
         cal.warnings.append(f"width reference gain {g:.2f} is far from 1: wrong layer height, flow or "

@@ -80,7 +80,7 @@ class Realism:
 
     @classmethod
     def parse(cls, text: str | None, camera_kind: str = "flatbed") -> "Realism":
-        """"all", "none", "default" or a comma list ("profile,grain"); default = all for a
+        """Realism from text: "all", "none", "default" or a comma list ("profile,grain"); default = all for a
         phone photo, none for a flatbed scan."""
         t = (text or "default").strip().lower()
         if t == "default":
