@@ -25,6 +25,13 @@ the ``widths`` table (interpolated between samples along s); every other track (
 fiducial, ruler, label) its commanded width. Separate tracks add coverage (clipped at 1)
 so touching raster lines of a fiducial print solid, as they do on a real plate.
 
+That footprint is the very edge model measure/edges.py fits. ``realism`` (measure/
+phenomena.py) renders what it does not assume: with "profile" a bead is the slicer's
+rounded rectangle seen from above (:func:`_track_profile`: hard footprint edge, shaded
+flanks, Beer-Lambert translucency, specular highlights) and the true width is the
+footprint, not the 50 % point of (1); "strings" and "raster_gaps" draw the virtual
+printer's deposition on travel moves and non-test tracks.
+
 Everything that is not the pattern (plate texture, plate logos, scratches, cutting mat)
 is drawn on a bed-space raster and mapped into the camera with ``cv2.remap``; lighting,
 vignetting, defocus blur, shot + read noise and JPEG compression follow in image space.

@@ -10,8 +10,9 @@ White cells are filled by a single-layer raster of straight lines that overlap b
 RASTER_OVERLAP of their width (a lagging Bowden extruder prints them narrower than
 commanded; touching lines would then leave gaps). A raster line of width w centred at x
 covers [x - w/2, x + w/2]; a run of white cells [xa, xb] is therefore printed from
-xa + w/2 to xb - w/2, and the n = ceil(cell / ((1 - overlap) w)) lines of a cell row sit at
-pitch cell/n. The lines are chained into serpentines (:func:`raster_chains`) that turn
+xa + w/2 to xb - w/2, and the n = ceil(cell / ((1 - overlap) w)) lines of a cell row run
+evenly from w/2 above its lower edge to w/2 below its upper edge (pitch (cell - w)/(n - 1);
+lines of neighbouring cell rows touch). The lines are chained into serpentines (:func:`raster_chains`) that turn
 only inside white cells, so the nozzle never crosses a black cell while it is still
 flowing: between chains it retracts and travels (issue #10: travel across the black
 cells without retraction left strings that made the markers unreadable).
@@ -73,7 +74,6 @@ def raster_lines(bits: np.ndarray, origin_mm, cell_mm: float, line_width_mm: flo
     """
     n_rows, n_cols = bits.shape
     n_lines = max(1, int(np.ceil(cell_mm / ((1.0 - overlap) * line_width_mm) - 1e-9)))
-    pitch = cell_mm / n_lines
     x0, y0 = map(float, origin_mm)
     half = 0.5 * line_width_mm
     out = []
