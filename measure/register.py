@@ -153,31 +153,42 @@ def detect_markers(gray) -> tuple[list[int], list[np.ndarray]]:
     small = g8 if k == 1.0 else cv2.resize(g8, (round(g8.shape[1] / k), round(g8.shape[0] / k)),
                                            interpolation=cv2.INTER_AREA)
     found: dict[int, np.ndarray] = {}
-    for neg in (False, True):
-        img = 255 - small if neg else small
-        corners, ids, _ = cv2.aruco.ArucoDetector(d, fast).detectMarkers(img)
-        if ids is None:
-            continue
-        for i, c in zip(ids.ravel(), corners):
-            if int(i) in found:
+    # plain first; then with plate grain smoothed away (textured PEI on a light plate with
+    # translucent plastic, measure/phenomena.py "grain": 0-2 of 4 markers found plain, all
+    # four after a 3-5 px median at the search scale)
+    for median_px in (0, 3, 5):
+        img0 = cv2.medianBlur(small, median_px) if median_px else small
+        for neg in (False, True):
+            img = 255 - img0 if neg else img0
+            corners, ids, _ = cv2.aruco.ArucoDetector(d, fast).detectMarkers(img)
+            if ids is None:
                 continue
-            c = c.reshape(4, 2).astype(float) * k
-            refined = _refine_in_crop(g8, c, int(i), neg, cv2.aruco.ArucoDetector(d, fine))
-            found[int(i)] = refined if refined is not None else c
+            for i, c in zip(ids.ravel(), corners):
+                if int(i) in found:
+                    continue
+                c = c.reshape(4, 2).astype(float) * k
+                refined = _refine_in_crop(g8, c, int(i), neg, cv2.aruco.ArucoDetector(d, fine),
+                                          median_px=(2 * int(round(median_px * k / 2)) + 1) if median_px else 0)
+                found[int(i)] = refined if refined is not None else c
+            if len(found) >= 4:
+                break
         if len(found) >= 4:
             break
     ids = sorted(found)
     return ids, [found[i] for i in ids]
 
 
-def _refine_in_crop(g8, approx, marker_id, negative, detector):
-    """Re-detect marker ``marker_id`` in a full-resolution crop around ``approx`` corners."""
+def _refine_in_crop(g8, approx, marker_id, negative, detector, median_px: int = 0):
+    """Re-detect marker ``marker_id`` in a full-resolution crop around ``approx`` corners
+    (median-filtered over ``median_px`` when it was found that way)."""
     size = np.ptp(approx, axis=0).max()
     lo = np.maximum(np.floor(approx.min(axis=0) - 0.5 * size), 0).astype(int)
     hi = np.minimum(np.ceil(approx.max(axis=0) + 0.5 * size), [g8.shape[1], g8.shape[0]]).astype(int)
     crop = g8[lo[1]:hi[1], lo[0]:hi[0]]
     if negative:
         crop = 255 - crop
+    if median_px:
+        crop = cv2.medianBlur(np.ascontiguousarray(crop), min(median_px, 255))
     corners, ids, _ = detector.detectMarkers(np.ascontiguousarray(crop))
     if ids is None:
         return None
