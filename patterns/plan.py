@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.errors import UserError
 from fit.geometry import bead_width_mm
 from patterns.gcode_parser import ParseResult, parse_gcode
 from patterns.manifest import Manifest, Track
@@ -102,7 +103,8 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
         else:
             kind = "test" if length >= min_test_length_mm else "other"
         tracks.append(Track(id=int(tid), kind=kind, points_mm=np.array(pts), width_mm=wid,
-                            height_mm=hei, flow_mm3_s=flo, z_mm=float(np.round(mv.z_mm[sel[0]], 4))))
+                            height_mm=hei, flow_mm3_s=flo, z_mm=float(np.round(mv.z_mm[sel[0]], 4)),
+                            params={"gcode_lines": [int(mv.line[sel[0]]), int(mv.line[sel[-1]])]}))
 
     pat = dict(pattern) if pattern is not None else {"name": "gcode"}
     pat.setdefault("planned_duration_s", round(mp.total_time_s, 3))
@@ -175,6 +177,37 @@ def parse_id_ranges(text: str) -> set[int]:
                 out.add(int(part))
         except ValueError:
             raise UserError(f"--tracks: {part!r} is not a track id or a range like 3-8") from None
+    return out
+
+
+def tracks_matching_comment(manifest: Manifest, gcode_text: str, pattern: str) -> set[int]:
+    """Ids of the tracks whose G-code comments match the regex ``pattern`` (case-insensitive,
+    re.search): the last full-line comment before the track's first move (a slicer's
+    ``;TYPE:`` or a test's own label) and every comment on its lines. Tracks planned by
+    :func:`manifest_from_parse` carry their source lines (``params["gcode_lines"]``)."""
+    import re
+
+    try:
+        rx = re.compile(pattern, re.I)
+    except re.error as exc:
+        raise UserError(f"--tracks-comment: {pattern!r} is not a regular expression ({exc})") from None
+    lines = gcode_text.splitlines()
+    last_comment = [""] * (len(lines) + 2)      # 1-based: the last full-line comment at or before
+    cur = ""
+    for i, ln in enumerate(lines, start=1):
+        t = ln.strip()
+        if t.startswith(";"):
+            cur = t
+        last_comment[i] = cur
+    out = set()
+    for tr in manifest.tracks:
+        a, b = (tr.params or {}).get("gcode_lines", (None, None))
+        if a is None:
+            continue
+        texts = [last_comment[max(0, a - 1)]]
+        texts += [ln.split(";", 1)[1] for ln in lines[a - 1:b] if ";" in ln]
+        if any(rx.search(t) for t in texts):
+            out.add(tr.id)
     return out
 
 

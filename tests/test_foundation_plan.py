@@ -203,3 +203,33 @@ def test_plan_picks_the_test_tracks(tmp_path, capsys):
     assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--z-range-mm", "0.3,0.5"]) == 0
     assert [t.id for t in Manifest.load(out).tracks if t.kind == "test"] == [4]
     assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks", "x"]) == 2
+
+
+def test_plan_picks_test_tracks_by_their_gcode_comments(tmp_path, capsys):
+    """--tracks-comment REGEX: a slicer's ;TYPE: line before a track, or a comment on its
+    moves, chooses the test tracks; a bad regex or one that matches nothing is one line."""
+    from calib.cli import main
+    from patterns.manifest import Manifest
+
+    g = ["G21", "G90", "M83", "G28", "G0 Z0.2 F600",
+         ";TYPE:Skirt", "G0 X40 Y40 F6000", "G1 X150 Y40 E5 F1500",
+         ";TYPE:External perimeter", "G0 X50 Y50", "G1 X100 Y50 E2.5 F1200",
+         ";TYPE:Solid infill", "G0 X50 Y60", "G1 X100 Y60 E2.5 F1200",
+         "G0 X50 Y70", "G1 X100 Y70 E2.5 F1200 ; pa test line 7",
+         ";TYPE:External perimeter", "G0 X50 Y80", "G1 X100 Y80 E2.5 F1200"]
+    src = tmp_path / "sliced.gcode"
+    src.write_text("\n".join(g) + "\n")
+    out = tmp_path / "m.json"
+
+    def tests(*extra):
+        assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), *extra]) == 0
+        return [t.id for t in Manifest.load(out).tracks if t.kind == "test"]
+
+    assert tests("--tracks-comment", "type:external perimeter") == [1, 4]
+    assert tests("--tracks-comment", r"test line \d+") == [3]
+    assert tests("--tracks-comment", "perimeter|test line", "--tracks", "3-4") == [3, 4]
+    capsys.readouterr()
+    for bad, msg in (("[unclosed", "is not a regular expression"), ("TYPE:Bridge", "matches no track")):
+        assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks-comment", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and msg in err[0]

@@ -34,6 +34,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="the test tracks by id, e.g. 3-8,12 (ids as in the preview); the rest "
                         "are 'other'. Default: every extruding run, minus the prime line and "
                         "closed loops (skirts, rings) when they can be recognised")
+    p.add_argument("--tracks-comment", metavar="REGEX",
+                   help="the test tracks are those whose G-code comments match REGEX (case-insensitive; the "
+                        "comment line before the track and those on its lines, e.g. 'TYPE:External perimeter' "
+                        "or 'line [0-9]+'); combines with --tracks and --z-range-mm")
     p.add_argument("--z-range-mm", metavar="LO,HI",
                    help="only tracks printed at a z in [LO, HI] mm are test tracks")
     p.add_argument("--keep-all", action="store_true",
@@ -68,8 +72,15 @@ def run(args) -> int:
         except ValueError:
             raise UserError(f"--z-range-mm takes LO,HI in mm, not {args.z_range_mm!r}") from None
         zr = (min(lo, hi), max(lo, hi))
-    notes = select_tracks(man, parse_id_ranges(args.tracks) if args.tracks else None, zr,
-                          auto_exclude=not (args.keep_all or man.pattern.get("labelled")))
+    ids = parse_id_ranges(args.tracks) if args.tracks else None
+    if args.tracks_comment:
+        from patterns.plan import tracks_matching_comment
+
+        hit = tracks_matching_comment(man, data.decode("utf-8", errors="replace"), args.tracks_comment)
+        if not hit:
+            raise UserError(f"--tracks-comment {args.tracks_comment!r} matches no track's G-code comments")
+        ids = hit if ids is None else ids & hit
+    notes = select_tracks(man, ids, zr, auto_exclude=not (args.keep_all or man.pattern.get("labelled")))
     man.pattern.setdefault("warnings", []).extend(notes)
     out = Path(args.output) if args.output else manifest_path_for(src)
     try:
