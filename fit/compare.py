@@ -6,12 +6,12 @@ vectorised call before the MAP polish, warm starts between nested models, the ta
 differences to the best model, and the arrays the plots need.
 
 Likelihood (``fit.likelihood``, the one ``calib fit`` uses). Samples are ordered along
-each track; the standardised residual e_i = (y_i - mu_i) / s_i with
-s_i^2 = width_sd_i^2 + sigma_extra^2 follows an AR(1) process along the track with
-phi_i = exp(-gap_i / ell) (ell = ``noise.corr_len_mm``, phi = 0 at a track start):
+each track; the residual y_i - mu_i is white measurement noise of sd width_sd_i plus an
+Ornstein-Uhlenbeck wobble of sd sigma_extra and correlation exp(-gap_i / ell)
+(ell = ``noise.corr_len_mm``, none across a track start); ln L is the exact Gaussian
+density, summed from the Kalman filter's innovations v_i of variance F_i:
 
-    ln L = sum_i [ -1/2 (u_i^2 + ln(1 - phi_i^2) + ln 2 pi) - ln s_i ],
-           u_i = (e_i - phi_i e_{i-1}) / sqrt(1 - phi_i^2)
+    ln L = sum_i -1/2 (v_i^2 / F_i + ln F_i + ln 2 pi)
 
 The fit is the MAP (:func:`fit.sampler.fit_map`; with the engine's log-uniform priors on
 the noise parameters and the optimisation in log space, the MAP of sigma_extra and ell
@@ -27,7 +27,7 @@ Residuals of a wrong model are correlated along a track; the AR(1) term carries 
 correlation inside ln L, so BIC differences need no ad-hoc n_eff/n rescaling (the former
 ``delta_bic_eff`` key is kept equal to ``delta_bic`` for readers of old files). ``n_eff``
 is reported as a diagnostic: sum_i (1 - phi_i) / (1 + phi_i) at the MAP, the AR(1)
-effective number of independent samples.
+effective number of independent samples of the wobble (an upper bound on its information).
 
 The full fit (:func:`fit.sampler.fit_mcmc`) runs emcee to convergence (autocorrelation
 time, split R-hat) and gives PSIS-LOO (:func:`fit.sampler.psis_loo`); the paired

@@ -466,6 +466,45 @@ class BedTilt(Effect):
 
 
 @register_effect
+class Spread(Effect):
+    """The bead smooths its own width along the track (surface tension rounds what the
+    nozzle lays, the nozzle's flat land irons it):
+
+        w_seen(s) = sum_j g(s_j - s) w(s_j) / sum_j g(s_j - s),   g(d) = exp(-d^2 / (2 sigma^2))
+
+    over the stations s_j of the same track within 4 sigma (mm). The deposit model
+    (fit/context.py) already averages the flow over one nozzle diameter; this is the
+    spreading beyond it, which shows where the width changes fast (the first 1-2 mm
+    after a flow step): the measured width leads the laid one before a rise and lags it
+    after. Found on realistic renders (bench_e2e): without it `pa` read tau 8-13 % high
+    with a 90 % interval of +-2 %, because the whitened residual keeps exactly those
+    stations; with it sigma ~0.18 mm and tau unbiased. sigma = 0: absent.
+    """
+
+    name = "spread"
+    params = (Param("sigma_mm", "mm", 0.0, 0.0, 1.0, "uniform", doc="along-track smoothing sd of the bead"),)
+
+    def width(self, ctx, w, p):
+        from fit.kernels import kernel
+
+        key = "spread_order"
+        if key not in ctx.cache:
+            order = np.lexsort((ctx.s_mm, ctx.s_track)).astype(np.int64)
+            tr = ctx.s_track[order]
+            starts = np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True]).astype(np.int64)
+            ctx.cache[key] = (order, starts, np.ascontiguousarray(ctx.s_mm, dtype=float))
+        order, starts, s = ctx.cache[key]
+        sig = np.asarray(p["sigma_mm"], dtype=float).reshape(-1)
+        w2 = np.atleast_2d(np.asarray(w, dtype=float))
+        n_sets = max(w2.shape[0], len(sig))
+        w2 = np.ascontiguousarray(np.broadcast_to(w2, (n_sets, len(s))))
+        sig = np.ascontiguousarray(np.broadcast_to(sig, (n_sets,)))
+        out = np.empty_like(w2)
+        kernel("spread", w2.shape[0])(w2, order, s, starts, sig, out)
+        return out
+
+
+@register_effect
 class Heading(Effect):
     """Width depending on the direction of travel theta (Duet3D spiral, seed 004):
 

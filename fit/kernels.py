@@ -524,10 +524,47 @@ def bead_width_kernel(area, h, h_per_set, printed, out):
                 out[i, k] = np.nan
 
 
+def _spread_rows(w, order, s, starts, sig, out):
+    """Gaussian smoothing of the widths w (n_sets, n) along each track (fit.effects.Spread):
+    ``order`` sorts the stations by (track, s), ``starts`` the track boundaries in it,
+    ``sig`` (n_sets,) the sd (mm); NaN widths neither contribute nor change."""
+    n_sets = w.shape[0]
+    for i in prange(n_sets):
+        sg = sig[i]
+        if not sg > 0.0:
+            for k in range(w.shape[1]):
+                out[i, k] = w[i, k]
+            continue
+        reach = 4.0 * sg
+        for t in range(len(starts) - 1):
+            a, b = starts[t], starts[t + 1]
+            lo = a
+            for k in range(a, b):
+                ik = order[k]
+                sk = s[ik]
+                if w[i, ik] != w[i, ik]:
+                    out[i, ik] = w[i, ik]
+                    continue
+                while s[order[lo]] < sk - reach:
+                    lo += 1
+                acc = 0.0
+                tot = 0.0
+                m = lo
+                while m < b and s[order[m]] <= sk + reach:
+                    v = w[i, order[m]]
+                    if v == v:
+                        d = (s[order[m]] - sk) / sg
+                        g = math.exp(-0.5 * d * d)
+                        acc += g * v
+                        tot += g
+                    m += 1
+                out[i, ik] = acc / tot
+
+
 # Each kernel twice: serial (one or a few parameter sets: no thread start-up cost) and
 # parallel over parameter sets (prange; emcee ensembles, 64+ sets).
 _PY = {"nozzle": nozzle_kernel, "predict": predict_kernel, "deposit": deposit_kernel,
-       "bead_width": bead_width_kernel}
+       "bead_width": bead_width_kernel, "spread": _spread_rows}
 
 
 def _renamed(f, suffix: str):

@@ -32,6 +32,14 @@ cameras do, so ``make bench`` can show one row per phenomenon and one with all o
   defocus      blur that grows across the image (depth of field of a tilted phone, a
                print not flat on the glass): sigma 0.6 -> 2.4 px
   jpeg         JPEG quality 70 (chroma subsampling, blocking at bead edges)
+  irregular    the printed bead itself is not the smooth width the physics predicts:
+               filament diameter drift (+-0.02 mm on 1.75 mm is +-2.3 % of the flow;
+               one mm of filament lays ~30 mm of bead, so it wanders slowly) and the
+               plate's texture under the bead (grain 0.1-0.3 mm) make it wander. Two
+               smooth random width changes with *Gaussian* correlations (not the
+               exponential one the fit's noise model assumes): sd ``irregular_rel`` x w
+               over ``irregular_corr_mm`` (filament) plus sd ``irregular_mm`` over
+               ``irregular_short_mm`` (texture). Part of the truth (the footprint).
 
 ``profile`` changes what a width *is* for the measurement: the true (physical) width is
 the footprint, and a profile-aware picture has an apparent (half-contrast) width that
@@ -45,7 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 PHENOMENA = ("profile", "translucent", "glare", "strings", "raster_gaps", "grain", "logos", "light",
-             "defocus", "jpeg")
+             "defocus", "jpeg", "irregular")
 #: Phenomena that need the virtual printer's deposition (not only the stations' widths).
 NEEDS_PHYSICS = ("strings", "raster_gaps")
 
@@ -58,6 +66,7 @@ class Realism:
     ambient           shading floor a of the flanks (fraction of the crown's brightness)
     glare_dn          peak specular highlight (DN, 0-255 scale) before clipping
     jpeg_quality      quality used by ``jpeg``
+    irregular_*       strengths of ``irregular`` (relative, mm) and their correlation lengths (mm)
     """
 
     enabled: frozenset = field(default_factory=frozenset)
@@ -65,6 +74,10 @@ class Realism:
     ambient: float = 0.35
     glare_dn: float = 160.0
     jpeg_quality: int = 70
+    irregular_rel: float = 0.012
+    irregular_corr_mm: float = 20.0
+    irregular_mm: float = 0.003
+    irregular_short_mm: float = 0.3
 
     def __post_init__(self):
         unknown = set(self.enabled) - set(PHENOMENA)
@@ -98,6 +111,43 @@ class Realism:
         if set(PHENOMENA) <= self.enabled:
             return "all"
         return ",".join(p for p in PHENOMENA if p in self.enabled)
+
+
+# =====================================================================================
+# the bead itself: irregular width
+# =====================================================================================
+def irregular_widths(track: np.ndarray, s_mm: np.ndarray, width_mm: np.ndarray, rng, *, rel: float = 0.012,
+                     corr_mm: float = 20.0, abs_mm: float = 0.003, short_mm: float = 0.3) -> np.ndarray:
+    """``width_mm`` (mm) with a smooth random wander along each track:
+    w' = max(w + rel w e1(s) + abs_mm e2(s), 0), e1, e2 unit-sd Gaussian-correlated
+    processes (correlation exp(-d^2 / L^2), L = corr_mm and short_mm); zero widths stay
+    zero (no bead)."""
+    out = np.asarray(width_mm, dtype=float).copy()
+    for tid in np.unique(track):
+        i = np.flatnonzero(track == tid)
+        s = s_mm[i]
+        if len(i) == 0 or not np.isfinite(s).all():
+            continue
+        w = out[i]
+        e1 = _smooth_noise(s, corr_mm, rng)
+        e2 = _smooth_noise(s, short_mm, rng)
+        bead = np.isfinite(w) & (w > 0)
+        out[i] = np.where(bead, np.maximum(w + rel * w * e1 + abs_mm * e2, 0.0), w)
+    return out
+
+
+def _smooth_noise(s_mm: np.ndarray, corr_mm: float, rng) -> np.ndarray:
+    """Unit-sd random process at ``s_mm`` with correlation exp(-d^2 / corr_mm^2): white
+    noise on a grid of corr_mm / 10 smoothed by a Gaussian of sd corr_mm / 2."""
+    from scipy.ndimage import gaussian_filter1d
+
+    step = corr_mm / 10.0
+    s0, s1 = float(np.min(s_mm)), float(np.max(s_mm))
+    pad = 21
+    grid = s0 + step * (np.arange(int(np.ceil((s1 - s0) / step)) + 1 + 2 * pad) - pad)
+    e = gaussian_filter1d(rng.standard_normal(len(grid)), 5.0, mode="wrap")
+    e /= max(float(np.std(e)), 1e-12)
+    return np.interp(s_mm, grid, e)
 
 
 # =====================================================================================

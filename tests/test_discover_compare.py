@@ -93,18 +93,16 @@ def test_extra_noise_and_bic_difference_between_nested_models_when_scatter_excee
 
 
 def _ar1_loglik_by_hand(x, y, sd, a, b, sig, ell):
-    """The AR(1) log-likelihood of fit/likelihood.py written out sample by sample."""
-    s = math.sqrt(sd ** 2 + sig ** 2)
-    ll, e_prev = 0.0, None
+    """The log-likelihood of fit/likelihood.py written out sample by sample: a Kalman
+    filter for an OU wobble (sig, ell) under white measurement noise sd."""
+    ll, m, P = 0.0, 0.0, sig ** 2
     for i in range(len(x)):
-        e = (y[i] - a - b * x[i]) / s
-        if e_prev is None:
-            ll += -0.5 * (e * e + math.log(2 * math.pi)) - math.log(s)
-        else:
-            phi = math.exp(-(x[i] - x[i - 1]) / ell)
-            u2 = (e - phi * e_prev) ** 2 / (1 - phi * phi)
-            ll += -0.5 * (u2 + math.log(1 - phi * phi) + math.log(2 * math.pi)) - math.log(s)
-        e_prev = e
+        phi = 0.0 if i == 0 else math.exp(-(x[i] - x[i - 1]) / ell)
+        mp, Pp = phi * m, phi * phi * P + (1 - phi * phi) * sig ** 2
+        F = Pp + sd ** 2
+        v = y[i] - a - b * x[i] - mp
+        ll += -0.5 * (v * v / F + math.log(F) + math.log(2 * math.pi))
+        m, P = mp + Pp / F * v, Pp * sd ** 2 / F
     return ll
 
 
@@ -132,9 +130,8 @@ def test_ar1_bic_matches_the_hand_computed_likelihood_of_correlated_residuals():
     ll = _ar1_loglik_by_hand(x, y, sd, a, b, sig, ell)
     assert f.loglik == pytest.approx(ll, abs=1e-8)
     # ... which is the exact joint density of the stationary process: a multivariate normal
-    # with covariance s^2 exp(-|x_i - x_j| / ell)
-    s2 = sd ** 2 + sig ** 2
-    C = s2 * np.exp(-np.abs(x[:, None] - x[None, :]) / ell)
+    # with covariance sig^2 exp(-|x_i - x_j| / ell) + sd^2 I
+    C = sig ** 2 * np.exp(-np.abs(x[:, None] - x[None, :]) / ell) + sd ** 2 * np.eye(n)
     assert ll == pytest.approx(multivariate_normal(a + b * x, C).logpdf(y), abs=1e-6)
     # 2. BIC = k ln n - 2 ln L with k = 4 (a, b, sigma_extra, ell)
     assert f.k == 4 and f.bic == pytest.approx(4 * math.log(n) - 2 * ll, abs=1e-8)
@@ -166,7 +163,9 @@ def test_full_fit_gives_elpd_and_prefers_the_true_model():
     rows = {r["model"]: r for r in comp.rows()}
     assert rows["line"]["converged"] and rows["const"]["converged"]  # tau and split R-hat
     assert rows["line"]["delta_elpd_loo"] == 0.0
-    assert rows["const"]["delta_elpd_loo"] < -4 * rows["const"]["delta_elpd_loo_se"]
-    assert rows["const"]["delta_elpd_loo"] < -20
+    # (the OU wobble under white measurement noise absorbs part of the missing slope as a
+    # long-correlated wander, so the margin is ~3 SE, 16 nats, on this 80-sample line)
+    assert rows["const"]["delta_elpd_loo"] < -2.5 * rows["const"]["delta_elpd_loo_se"]
+    assert rows["const"]["delta_elpd_loo"] < -10
     lo, med, hi = rows["line"]["intervals"]["line.b_mm"]
     assert lo < 0.005 < hi

@@ -66,14 +66,13 @@ def make_scan(name="scan", tau=0.3, gain=1.0, sd=0.005, sig=0.015, ell=0.6, seed
     th = np.array([tau, gain])[: len(model.param_names)]
     w_true = model.predict(ctx, th)[0]
     phi = math.exp(-0.25 / ell)
-    tot = math.sqrt(sd ** 2 + sig ** 2)
-    e = np.empty(len(s))
+    e = np.empty(len(s))       # the OU wobble (sig, ell), then white measurement noise (sd)
     for i in range(len(s)):
         if s[i] == 0:
             e[i] = rng.standard_normal()
         else:
             e[i] = phi * e[i - 1] + math.sqrt(1 - phi ** 2) * rng.standard_normal()
-    y = w_true + tot * e
+    y = w_true + sig * e + sd * rng.standard_normal(len(s))
     if outliers:
         k = rng.choice(len(y), outliers, replace=False)
         y[k] += 0.3
@@ -89,27 +88,40 @@ def make_scan(name="scan", tau=0.3, gain=1.0, sd=0.005, sig=0.015, ell=0.6, seed
 
 
 # -- likelihood ------------------------------------------------------------------------
-def test_ar1_loglik_equals_exact_multivariate_normal():
-    """Sum of the pointwise terms is the exact stationary AR(1) Gaussian density."""
+def test_loglik_equals_exact_multivariate_normal():
+    """Sum of the pointwise terms is the exact density of an OU process (sigma_extra, ell)
+    seen through white measurement noise of per-station sd: covariance
+    diag(sd^2) + sig^2 exp(-|s_i - s_j| / ell), with a gap and two tracks."""
     rng = np.random.default_rng(1)
-    n, sd, sig, ell, ds = 40, 0.01, 0.02, 0.7, 0.25
+    n, sig, ell = 40, 0.02, 0.7
+    sd = rng.uniform(0.005, 0.015, n)
+    s = np.cumsum(np.r_[0.0, np.where(np.arange(1, n) == 17, 1.5, 0.25)])
+    new_track = np.arange(n) == 25
     r = rng.normal(0, 0.02, n)
-    rho = math.exp(-ds / ell)
-    s2 = sd ** 2 + sig ** 2
-    C = s2 * rho ** np.abs(np.subtract.outer(np.arange(n), np.arange(n)))
+    track = np.cumsum(new_track)
+    C = sig ** 2 * np.exp(-np.abs(np.subtract.outer(s, s)) / ell) * (track[:, None] == track[None, :])
+    C += np.diag(sd ** 2)
     exact = multivariate_normal(np.zeros(n), C).logpdf(r)
-    gap = np.r_[np.inf, np.full(n - 1, ds)]
-    ll = pointwise_loglik(r[None], np.full(n, sd), sig, ar1_phi(gap, np.array([[ell]])))
+    gap = np.r_[np.inf, np.diff(s)]
+    gap[new_track] = np.inf
+    ll = pointwise_loglik(r[None], sd, sig, ar1_phi(gap, np.array([[ell]])))
     assert ll.sum() == pytest.approx(exact, rel=1e-10)
+    # the compiled kernel of the sampler gives the same terms
+    from fit.likelihood import _AR1_SERIAL
+    out = np.empty((1, n))
+    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.array([ell]),
+                -1.0, 0.0, out)
+    assert np.allclose(out, ll, rtol=1e-12, atol=1e-12)
 
 
 def test_ar1_gap_uses_rho_to_the_power_of_the_gap():
     """Two samples 1 mm apart: correlation exp(-1/ell), as an OU process."""
-    ell, sd = 0.5, 0.01
+    ell, sd, sig = 0.5, 0.004, 0.01
     r = np.array([0.012, -0.004])
     rho = math.exp(-1.0 / ell)
-    exact = multivariate_normal(np.zeros(2), sd ** 2 * np.array([[1, rho], [rho, 1]])).logpdf(r)
-    ll = pointwise_loglik(r[None], np.full(2, sd), 0.0, ar1_phi(np.array([np.inf, 1.0]), [[ell]]))
+    exact = multivariate_normal(np.zeros(2), sig ** 2 * np.array([[1, rho], [rho, 1]])
+                                + sd ** 2 * np.eye(2)).logpdf(r)
+    ll = pointwise_loglik(r[None], np.full(2, sd), sig, ar1_phi(np.array([np.inf, 1.0]), [[ell]]))
     assert ll.sum() == pytest.approx(exact, rel=1e-10)
 
 

@@ -192,7 +192,7 @@ def test_vectorised_predict_equals_looped():
     m = _retract_travel_manifest()
     ctx = SimContext.build(m)
     model = build_model("pa+thermal+backpressure+bernoulli+nonlinear+offset+kalico_tanh+flow_gain"
-                        "+bed_tilt+heading+backlash")
+                        "+bed_tilt+heading+backlash+spread")
     rng = np.random.default_rng(1)
     lo, hi = model.bounds.T
     lo = np.where(np.array([p.prior_kind == "loguniform" for p in model.params]), lo, lo)
@@ -226,7 +226,7 @@ def test_every_effect_can_be_absent_inside_its_prior():
     absent = {"nonlinear.n": 1.0, "bernoulli.k_s2_mm3": 0.0, "backpressure.kb": 0.0,
               "offset.kc_mm": 0.0, "kalico_tanh.off_mm": 0.0, "kalico_recip.off_mm": 0.0,
               "thermal.a": 0.0, "backlash.be_mm": 0.0, "flow_gain.gain": 1.0, "bed_tilt.gx": 0.0,
-              "bed_tilt.gy": 0.0, "heading.a_mm": 0.0, "heading.b_mm": 0.0}
+              "bed_tilt.gy": 0.0, "heading.a_mm": 0.0, "heading.b_mm": 0.0, "spread.sigma_mm": 0.0}
     spec = "pa+" + "+".join(sorted({k.split(".")[0] for k in absent}))
     model = build_model(spec)
     th = model.theta_from(absent)
@@ -249,3 +249,40 @@ def test_bad_names_raise_user_error():
         build_model("pa").with_values({"pa.tau_s": 50.0})
     with pytest.raises(UserError, match="pa_ve needs a printer profile"):
         build_model("pa_ve")
+
+
+def test_spread_is_a_gaussian_smoothing_along_each_track():
+    """fit.effects.Spread against its equation computed directly: a width step becomes
+    lo + (hi - lo) Phi(d / sigma) in the interior of a track, a ramp stays a ramp, two
+    tracks never mix, NaN (never printed) stays NaN, sigma = 0 is the identity; several
+    parameter sets at once (the parallel kernel) equal one at a time."""
+    from types import SimpleNamespace
+
+    from scipy.stats import norm
+
+    from fit.effects import Spread
+
+    s1 = np.arange(0.0, 20.0, 0.05)
+    n = len(s1)
+    s = np.r_[s1, s1]
+    track = np.r_[np.zeros(n, int), np.ones(n, int)]
+    w = np.r_[np.where(s1 < 10.0, 0.4, 0.8), 0.3 + 0.01 * s1]
+    w[n + 50] = np.nan
+    perm = np.random.default_rng(0).permutation(2 * n)       # stations in any order
+    ctx = SimpleNamespace(s_mm=s[perm], s_track=track[perm], cache={})
+    eff = Spread()
+    sig = np.array([[0.3], [0.0], [0.15]])
+    out = eff.width(ctx, w[perm][None, :], {"sigma_mm": sig})
+    back = np.empty_like(out)
+    back[:, perm] = out
+    step = back[0, :n]
+    mid = (s1 > 5) & (s1 < 15)
+    np.testing.assert_allclose(step[mid], 0.4 + 0.4 * norm.cdf((s1[mid] - 10.0 + 0.025) / 0.3), atol=2e-3)
+    assert step[0] == pytest.approx(0.4) and step[-1] == pytest.approx(0.8)   # no mixing with track 1
+    ramp = back[0, n:]
+    inner = (s1 > 2) & (s1 < 18) & (np.abs(s1 - 2.5) > 1.3)                  # away from the NaN
+    np.testing.assert_allclose(ramp[inner], (0.3 + 0.01 * s1)[inner], atol=1e-6)  # 4-sigma cut
+    assert np.isnan(ramp[50]) and np.isfinite(np.delete(ramp, 50)).all()
+    np.testing.assert_array_equal(back[1], np.where(np.isnan(w), np.nan, w))
+    one = eff.width(ctx, w[perm][None, :], {"sigma_mm": sig[2:3]})
+    np.testing.assert_allclose(out[2], one[0], rtol=0, atol=1e-15)

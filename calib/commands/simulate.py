@@ -108,6 +108,13 @@ def simulate_scan(manifest, truth_spec: str, values: dict, camera_kind: str = "f
 
     if not isinstance(realism, Realism):
         realism = Realism.parse(realism, camera_kind)
+    if "irregular" in realism:
+        from measure.phenomena import irregular_widths
+
+        t = vp.table
+        t.width_mm[:] = irregular_widths(t.track, t.s_mm, t.width_mm, np.random.default_rng([int(seed), 11]),
+                                         rel=realism.irregular_rel, corr_mm=realism.irregular_corr_mm,
+                                         abs_mm=realism.irregular_mm, short_mm=realism.irregular_short_mm)
     deposits = deposit_pieces(manifest, vp) if set(NEEDS_PHYSICS) & realism.enabled else None
     rendered = render(manifest, vp.table, camera, plate=plate, plastic=plastic, seed=seed,
                       jpeg_quality=jpeg_quality, clutter=clutter, progress=progress,
