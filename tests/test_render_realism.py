@@ -6,7 +6,7 @@ import pytest
 
 from calib.cli import main
 from measure.calibrate import calibrate, reference_stations
-from measure.phenomena import PHENOMENA, Realism, deposit_pieces, pei_grain
+from measure.phenomena import PHENOMENA, Realism, deposit_pieces, irregular_widths, pei_grain
 
 
 # -- calibration: known answers ---------------------------------------------------------
@@ -77,6 +77,31 @@ def printed():
     _, man = spiral_step.generate("long_bowden", widths_mm=(0.5, 1.0), speeds_mm_s=(20.0,), n_steps=4)[:2]
     spec, values, _ = load_truth(data_dir() / "truths" / "bowden.toml")
     return man, spec, values, print_virtual(man, build_model(spec, man.printer), values)
+
+
+def test_irregular_bead_wander_has_the_stated_sd_and_gaussian_correlation():
+    """measure.phenomena.irregular_widths: the slow (filament) part has sd rel x w and
+    correlation exp(-d^2 / L^2) (0.78 at L/2, 0.37 at L); zero widths stay zero; the
+    texture part adds its sd in quadrature."""
+    s = np.arange(0.0, 4000.0, 0.25)
+    w = np.full(len(s), 0.5)
+    w[100:120] = 0.0
+    trk = np.zeros(len(s), int)
+    rng = np.random.default_rng(3)
+    out = irregular_widths(trk, s, w, rng, rel=0.02, corr_mm=20.0, abs_mm=0.0)
+    assert np.all(out[100:120] == 0.0)
+    e = np.delete((out - w) / (0.02 * 0.5), np.s_[100:120])
+    assert np.std(e) == pytest.approx(1.0, abs=0.15)
+
+    def corr(lag_mm):
+        k = int(lag_mm / 0.25)
+        return float(np.corrcoef(e[:-k], e[k:])[0, 1])
+    assert corr(10.0) == pytest.approx(np.exp(-0.25), abs=0.08)
+    assert corr(20.0) == pytest.approx(np.exp(-1.0), abs=0.08)
+    assert abs(corr(60.0)) < 0.1
+    both = irregular_widths(trk, s, np.full(len(s), 0.5), np.random.default_rng(4), rel=0.02, corr_mm=20.0,
+                            abs_mm=0.01, short_mm=0.3) - 0.5
+    assert np.std(both) == pytest.approx(np.hypot(0.01, 0.01), rel=0.15)
 
 
 def test_deposits_conserve_the_virtual_printers_volume():
