@@ -94,9 +94,10 @@ class ModelFit:
 
     @property
     def n_eff(self) -> float:
-        """AR(1) effective sample size at the MAP: sum_i (1 - phi_i) / (1 + phi_i)."""
+        """AR(1) effective sample size at the MAP: sum_i (1 - phi_i) / (1 + phi_i) over the
+        valid samples (the wobble; censored missing stations are not counted)."""
         if not np.isfinite(self.corr_len_mm):
-            return float(self.n)
+            return float(sum(sc.n_valid for sc in self.problem.scans))
         phi = np.concatenate([ar1_phi(sc.gap_mm, self.corr_len_mm)[0] for sc in self.problem.scans])
         return float(np.sum((1 - phi) / (1 + phi)))
 
@@ -252,7 +253,8 @@ def full_fit(fit: ModelFit, seed: int = 0, max_steps: int = 20000, progress: boo
 
 def delta_elpd(f: ModelFit, ref: ModelFit | None) -> tuple[float, float]:
     """elpd_loo(f) - elpd_loo(ref) and its se from the paired pointwise differences."""
-    if ref is None or f.elpd_i is None or ref.elpd_i is None:
+    if ref is None or f.elpd_i is None or ref.elpd_i is None or len(f.elpd_i) != len(ref.elpd_i):
+        # (different observations, e.g. one fit ignored the missing stations: not paired)
         return float("nan"), float("nan")
     d = f.elpd_i - ref.elpd_i
     return float(np.sum(d)), float(math.sqrt(len(d) * np.var(d)))

@@ -6,6 +6,17 @@ height from the manifest's tracks, pass times from its timeline), the simulation
 context ``ctx`` is built on them, and the valid samples are ordered along each track
 (track, then arc length) for the AR(1) noise model of :mod:`fit.likelihood`.
 
+Stations the measurement flagged ``missing`` (no bead seen: width 0, valid 0) are data
+too, not dropped samples: where the nozzle passed over a printed part of a test track
+and the scan saw nothing, the bead was narrower than the scan's detection limit. Their
+rows are kept in ``missing_idx``; :class:`fit.likelihood.JointProblem` adds one
+censored term P(w < w_min | theta) per station (see its docstring). A station is "on a
+printed part" when the nozzle passed it on that track: finite pass time t_s and, when
+the simulation context is built, ``ctx.printed`` (the deposit window lies inside the
+part of the track the timeline covers); elsewhere (a station past the printed end, a
+track the timeline never reached) nothing could be seen under any model, so it carries
+no information and is not kept.
+
 A :class:`FitData` is one or more ScanData of the same printer (a joint fit).
 
 Checks (each a one-line :class:`calib.errors.UserError`): the table has valid samples;
@@ -46,6 +57,10 @@ class ScanData:
     y_mm, sd_mm (n_valid,) measured width and its sd at ``order`` (mm)
     gap_mm      (n_valid,) arc length to the previous valid sample of the same track
                 (mm; inf at the first sample of each track)
+    missing_idx (n_missing,) row indices of the stations flagged ``missing`` (no bead seen)
+                that lie on a printed part of a test track, sorted by (track, s_mm); the
+                censored data of the fit (their ``width_sd_mm`` is the scan's detection
+                scale, ~1 px = 1/ppm mm)
     """
 
     name: str
@@ -58,10 +73,15 @@ class ScanData:
     gap_mm: np.ndarray
     ctx: object = None
     source: dict = field(default_factory=dict)
+    missing_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def n_valid(self) -> int:
         return len(self.order)
+
+    @property
+    def n_missing(self) -> int:
+        return len(self.missing_idx)
 
     @property
     def track_valid(self) -> np.ndarray:
@@ -79,6 +99,10 @@ class FitData:
     @property
     def n_valid(self) -> int:
         return sum(s.n_valid for s in self.scans)
+
+    @property
+    def n_missing(self) -> int:
+        return sum(s.n_missing for s in self.scans)
 
     @classmethod
     def load(cls, pairs, build_ctx: bool = True) -> "FitData":
@@ -169,4 +193,17 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
         ctx = SimContext.build(manifest, samples)
     return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
                     y_mm=table.width_mm[idx].copy(), sd_mm=table.width_sd_mm[idx].copy(),
-                    gap_mm=gap, ctx=ctx)
+                    gap_mm=gap, ctx=ctx, missing_idx=missing_rows(table, samples, ctx))
+
+
+def missing_rows(table: WidthTable, samples, ctx=None) -> np.ndarray:
+    """Rows flagged ``missing`` on a printed part of a test track (module docstring),
+    sorted by (track, s_mm): flag "missing", valid 0, finite pass time t_s (s), and
+    ``ctx.printed`` when a context is given."""
+    miss = (np.asarray(table.flag, dtype=object) == "missing") & ~table.valid
+    miss &= np.isfinite(np.asarray(samples.t_s, dtype=float))
+    printed = getattr(ctx, "printed", None)
+    if printed is not None and len(printed) == len(table):
+        miss &= np.asarray(printed, dtype=bool)
+    idx = np.flatnonzero(miss)
+    return idx[np.lexsort((table.s_mm[idx], table.track[idx]))].astype(np.int64)

@@ -44,6 +44,31 @@ cross-validation").
 
 ``ell`` (``noise.corr_len_mm``) is fitted with a log-uniform prior; ``AR1=False`` fixes
 phi = 0 (x independent too: residual sd sqrt(width_sd^2 + sigma_extra^2)).
+
+Missing beads are censored data (issue #10 item 5). A station the measurement flagged
+``missing`` (``fit.data.ScanData.missing_idx``: no bead seen where the nozzle passed over
+a printed part of a test track) says the bead there was narrower than the scan's
+detection limit w_min, not nothing. Each adds one independent term
+
+    ll_i = ln P(missing | theta) = ln Phi((w_min_i - m_i(theta)) / s_i)
+    w_min_i = max(width_sd_i, MISSING_W_MIN_FLOOR_MM)     (mm; ``measure`` writes
+              width_sd = 1/ppm, one pixel, at missing stations: a bead narrower than
+              about a pixel is not seen; the floor 0.05 mm covers tables without it)
+    s_i = sqrt(w_min_i^2 / 4 + sigma_extra^2)             (mm; the detection threshold is
+              soft by about half a pixel, and the bead wobbles by sigma_extra as anywhere)
+
+(Phi the standard normal CDF; with ``student_nu`` the Student-t CDF of the same
+standardised value, so one misdetected gap costs polynomially, not exponentially.)
+With w_min = 0.05 mm and sigma_extra = 0.01 mm (s = 0.027 mm), a model that predicts no
+bead there (m_i = 0) pays ln Phi(1.86) = -0.03; one that predicts a clear 0.4 mm bead
+pays ln Phi(-13.0) = -88: seeing nothing where the model lays a bead is strong evidence
+against it. The terms are independent of the Kalman filter of the valid samples (the
+wobble state is not carried across a gap in the bead), and are appended after all valid
+terms in the pointwise array (n_obs = n_valid + n_missing), so BIC and PSIS-LOO count
+them as observations. Stations whose model width is NaN (never printed, ``ctx.printed``
+False) would add ln 1 = 0 under every theta: they cannot tell models apart and are not
+kept (a constant column would only give PSIS an undefined Pareto k). ``NoiseOptions(missing=False)`` (``calib fit --ignore-missing``) drops them all, as
+before.
 """
 from __future__ import annotations
 
@@ -52,7 +77,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import prange
-from scipy.special import gammaln
+from scipy.special import gammaln, log_ndtr, stdtr
 
 from fit.kernels import serial_and_parallel
 from fit.priors import Prior, prior_from_param
@@ -66,15 +91,21 @@ NUISANCE_EFFECTS = ("flow_gain", "bed_tilt", "scan_bias", "flow", "tilt", "layer
 
 SIGMA_NAME = "noise.sigma_extra_mm"
 CORR_NAME = "noise.corr_len_mm"
+#: Smallest detection limit (mm) of a ``missing`` station: w_min = max(width_sd, this).
+MISSING_W_MIN_FLOOR_MM = 0.05
 
 
 @dataclass(frozen=True)
 class NoiseOptions:
     """Noise model switches: AR(1) along tracks, Student-t innovations with ``student_nu``
-    degrees of freedom (None: Gaussian)."""
+    degrees of freedom (None: Gaussian); ``missing``: fit the stations flagged missing as
+    censored data (module docstring; on by default, a no-op when a table has none) with
+    detection limit w_min = max(width_sd, ``missing_w_min_floor_mm``) (mm)."""
 
     ar1: bool = True
     student_nu: float | None = None
+    missing: bool = True
+    missing_w_min_floor_mm: float = MISSING_W_MIN_FLOOR_MM
     sigma_prior: Prior = field(default_factory=lambda: Prior("loguniform", 1e-4, 0.5))
     corr_prior: Prior = field(default_factory=lambda: Prior("loguniform", 0.02, 50.0))
 
@@ -132,6 +163,27 @@ def whiten(x_mm, sd_mm, sigma_extra_mm: float, gap_mm, corr_len_mm: float | None
     return (v / np.sqrt(F))[0]
 
 
+def missing_loglik(pred_mm, w_min_mm, sigma_extra_mm, student_nu=None) -> np.ndarray:
+    """Censored log-likelihood (n_sets, n) of stations where no bead was seen:
+
+        ln Phi((w_min - m) / s),   s = sqrt(w_min^2 / 4 + sigma_extra^2)   (mm)
+
+    pred_mm (n_sets, n) model widths m (mm), w_min_mm (n,) detection limits (mm),
+    sigma_extra_mm (n_sets, 1) or scalar (mm); ``student_nu``: the Student-t CDF instead
+    of Phi. Non-finite values (a NaN prediction) give -inf, as the valid terms do."""
+    m = np.atleast_2d(np.asarray(pred_mm, dtype=float))
+    wmin = np.asarray(w_min_mm, dtype=float)[None, :]
+    sig = np.asarray(sigma_extra_mm, dtype=float)
+    s = np.sqrt(0.25 * wmin * wmin + sig * sig)
+    z = (wmin - m) / s
+    if student_nu is None:
+        ll = log_ndtr(z)
+    else:
+        with np.errstate(divide="ignore"):
+            ll = np.log(stdtr(float(student_nu), z))
+    return np.where(np.isfinite(ll), ll, -np.inf)
+
+
 def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, ell, nu, c_t, out):
     """Compiled :func:`pointwise_loglik` fused with the residuals: for every set i and
     valid sample j, r = y_j - pred[i, order_j], through the Kalman filter of the module
@@ -172,6 +224,18 @@ _AR1_SERIAL, _AR1_PARALLEL = serial_and_parallel(_ar1_loglik_rows)
 def ar1_phi(gap_mm: np.ndarray, corr_len_mm) -> np.ndarray:
     """phi_i = exp(-gap_i / ell); gap = inf at a track start gives 0. Shapes (n,), (n_sets, 1)."""
     return np.exp(-gap_mm[None, :] / np.asarray(corr_len_mm))
+
+
+def censored_rows(scan) -> np.ndarray:
+    """Rows of ``scan.missing_idx`` (fit/data.py) whose model width is defined: the
+    station is printed in the simulation context (and in its coarsened physics context,
+    which ``predict`` integrates)."""
+    idx = np.asarray(getattr(scan, "missing_idx", ()), dtype=np.int64)
+    for c in (scan.ctx, getattr(scan.ctx, "physics", None)):
+        printed = getattr(c, "printed", None)
+        if printed is not None and len(idx):
+            idx = idx[np.asarray(printed, dtype=bool)[idx]]
+    return idx
 
 
 def is_nuisance(param_name: str) -> bool:
@@ -237,7 +301,18 @@ class JointProblem:
             priors = apply_overrides(priors, prior_overrides)
         self.param_names = names
         self.priors = [priors[n] for n in names]
-        self.n_obs = int(sum(sc.n_valid for sc in scans))
+        # censored stations (module docstring): rows of each scan and their w_min (mm)
+        self.missing_idx: list[np.ndarray] = []
+        self.missing_w_min_mm: list[np.ndarray] = []
+        for sc in scans:
+            idx = censored_rows(sc) if noise.missing else np.zeros(0, np.int64)
+            sd = np.asarray(sc.table.width_sd_mm, dtype=float)[idx] if len(idx) else np.zeros(0)
+            sd = np.where(np.isfinite(sd), sd, 0.0)
+            self.missing_idx.append(idx)
+            self.missing_w_min_mm.append(np.maximum(sd, float(noise.missing_w_min_floor_mm)))
+        self.n_valid = int(sum(sc.n_valid for sc in scans))
+        self.n_missing = int(sum(len(i) for i in self.missing_idx))
+        self.n_obs = self.n_valid + self.n_missing
 
     # -- parameter vector ---------------------------------------------------------
     @property
@@ -299,7 +374,9 @@ class JointProblem:
         return total, ll
 
     def pointwise(self, theta) -> np.ndarray:
-        """Pointwise log-likelihood (n_sets, n_obs) for parameters inside the support."""
+        """Pointwise log-likelihood (n_sets, n_obs) for parameters inside the support:
+        the valid samples of every scan (Kalman terms, scan after scan), then the censored
+        terms of every scan's missing stations (:func:`missing_loglik`)."""
         th = np.atleast_2d(np.asarray(theta, dtype=float))
         n_sets = th.shape[0]
         nu = self.noise.student_nu
@@ -308,7 +385,8 @@ class JointProblem:
                                            - 0.5 * math.log(nu_f * math.pi))
         kern = _AR1_PARALLEL if n_sets >= 4 else _AR1_SERIAL
         out = np.empty((n_sets, self.n_obs))
-        col = 0
+        direct = len(self.scans) == 1 and self.n_missing == 0
+        col, col_m = 0, self.n_valid
         for k, sc in enumerate(self.scans):
             # pointwise_loglik (the reference) with the residuals, in one compiled pass
             pred = np.ascontiguousarray(self.predict(th, k), dtype=float)
@@ -317,12 +395,16 @@ class JointProblem:
             sig = np.ascontiguousarray(th[:, i_sig])
             ell = np.ascontiguousarray(th[:, i_cor]) if i_cor is not None else np.zeros(n_sets)
             n = len(sc.order)
-            part = out[:, col:col + n] if len(self.scans) > 1 else out
-            buf = np.empty((n_sets, n)) if len(self.scans) > 1 else out
+            buf = out if direct else np.empty((n_sets, n))
             kern(pred, *self._kernel_arrays(k), sig, ell, nu_f, c_t, buf)
             if buf is not out:
-                part[:] = buf
+                out[:, col:col + n] = buf
             col += n
+            mi = self.missing_idx[k]
+            if len(mi):
+                out[:, col_m:col_m + len(mi)] = missing_loglik(
+                    pred[:, mi], self.missing_w_min_mm[k], sig[:, None], nu)
+                col_m += len(mi)
         return out
 
     def _kernel_arrays(self, k: int) -> tuple:

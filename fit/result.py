@@ -28,6 +28,8 @@ class MapResult:
     theta        (k,) MAP parameters (units as ``param_names``)
     cov          (k, k) Laplace covariance (inverse Hessian of -log posterior)
     loglik       ln L at the MAP;  pointwise (n,) its per-sample terms
+    n_obs        terms of ln L: valid samples + censored missing stations (n_missing,
+                 fit/likelihood.py), the n of BIC
     rms_mm       residual RMS over valid samples (mm)
     chi2_nu      reduced chi-square with the measurement sd only (see module docstring)
     """
@@ -48,6 +50,7 @@ class MapResult:
     n_starts: int = 1
     message: str = ""
     modes: list = field(default_factory=list)   # distinct optima, best first (fit.modes)
+    n_missing: int = 0                           # of n_obs: stations with no bead seen (censored)
 
     @property
     def bic(self) -> float:
@@ -66,7 +69,8 @@ class MapResult:
         return {"model": self.model, "theta": self.values,
                 "sd": dict(zip(self.param_names, map(float, sd))),
                 "log_post": self.log_post, "loglik": self.loglik, "bic": self.bic,
-                "aic": self.aic, "n_obs": self.n_obs, "k": self.k, "rms_mm": self.rms_mm,
+                "aic": self.aic, "n_obs": self.n_obs, "n_missing": self.n_missing, "k": self.k,
+                "rms_mm": self.rms_mm,
                 "chi2_nu": self.chi2_nu, "success": self.success, "message": self.message,
                 "modes": self.modes}
 
@@ -132,7 +136,8 @@ class FitResult:
             "map": self.map.to_json(), "covariance": self.cov.tolist(),
             "diagnostics": self.diagnostics,
             "information": {"loglik_map": self.map.loglik, "bic": self.map.bic, "aic": self.map.aic,
-                            "n_obs": self.map.n_obs, "k": self.map.k, "rms_mm": self.map.rms_mm,
+                            "n_obs": self.map.n_obs, "n_missing": self.map.n_missing,
+                            "k": self.map.k, "rms_mm": self.map.rms_mm,
                             "chi2_nu": self.map.chi2_nu, "loo": self.loo},
             "derived": self.derived, "profile": self.profile, "priors": self.priors,
             "seed": self.seed, "trust": self.trust,

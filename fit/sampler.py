@@ -230,11 +230,13 @@ def _map_result(problem, theta, cov, res, n_ok, label) -> MapResult:
     k_model = sum(1 for n in problem.param_names
                   if not (n.startswith(SIGMA_NAME) or n.startswith(CORR_NAME)))
     n = problem.n_obs
+    n_valid = len(resid)          # chi2_nu and RMS: valid samples (missing ones have no residual)
     return MapResult(model=label, param_names=list(problem.param_names), theta=theta, cov=cov,
                      log_post=float(lp[0]), loglik=float(ll[0].sum()), pointwise=ll[0],
                      n_obs=n, k=problem.ndim, k_model=k_model,
                      rms_mm=float(np.sqrt(np.mean(resid ** 2))),
-                     chi2_nu=float(np.sum((resid / sd) ** 2) / max(1, n - k_model)),
+                     chi2_nu=float(np.sum((resid / sd) ** 2) / max(1, n_valid - k_model)),
+                     n_missing=int(getattr(problem, "n_missing", 0)),
                      success=bool(getattr(res, "success", True)), n_starts=n_ok,
                      message=str(getattr(res, "message", "")))
 

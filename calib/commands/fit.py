@@ -38,6 +38,9 @@ def add_parser(sub):
     p.add_argument("--student-t", type=float, default=None, metavar="NU",
                    help="Student-t noise with NU degrees of freedom (robust to outliers)")
     p.add_argument("--no-ar1", action="store_true", help="treat samples as independent (not advised)")
+    p.add_argument("--ignore-missing", action="store_true",
+                   help="drop the stations flagged 'missing' (no bead seen) instead of fitting "
+                        "them as beads narrower than the scan can see (default: fit them)")
     p.add_argument("--max-steps", type=int, default=20000, help="cap on MCMC steps (default 20000)")
     p.add_argument("--max-time", type=float, default=None, metavar="S", help="cap on wall time (s)")
     p.add_argument("--map-only", action="store_true", help="only the MAP fit (fast, no posterior)")
@@ -69,8 +72,10 @@ def data_pairs(args) -> list[tuple[str, str]]:
 
 def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=None, ar1=True,
             max_steps=20000, max_time_s=None, seed=0, progress=True, map_only=False,
-            chi2_max=None):
-    """Load, fit and return (FitResult or MapResult, JointProblem). Shared with `calib batch`."""
+            chi2_max=None, missing=True):
+    """Load, fit and return (FitResult or MapResult, JointProblem). Shared with `calib batch`.
+    ``missing``: fit the stations flagged missing as censored data (fit/likelihood.py);
+    False drops them (``--ignore-missing``)."""
     from fit.data import FitData
     from fit.derived import derived_values
     from fit.likelihood import NoiseOptions
@@ -92,7 +97,7 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
 
     data = FitData.load(pairs)
     user = load_priors_file(priors) if priors else {}
-    noise = NoiseOptions(ar1=ar1, student_nu=student_nu)
+    noise = NoiseOptions(ar1=ar1, student_nu=student_nu, missing=missing)
     problem = make_problem(model_spec, data, noise, user or None, extra)
     # what `calib measure` said of its widths: scan_bias priors, and a caution (fit/measurement.py)
     states = measurement.scan_states(data)
@@ -129,8 +134,27 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
     res.diagnostics["measurement"] = {"scans": states, "notes": meas_notes,
                                       "scan_bias_priors": cal}
+    res.diagnostics["missing_stations"] = missing_info(problem)
     res.trust = assess(res.to_json(), chi2_max=chi2_max).to_json()
     return res, problem
+
+
+def missing_info(problem) -> dict:
+    """How many stations flagged missing (no bead seen) the fit used as censored data:
+    {"used", "on_printed_tracks", "ignored"} (counts over all scans)."""
+    from fit.likelihood import censored_rows
+
+    on = int(sum(len(censored_rows(sc)) for sc in problem.scans))
+    return {"used": int(problem.n_missing), "on_printed_tracks": on,
+            "ignored": not problem.noise.missing}
+
+
+def missing_text(info: dict) -> str:
+    if info.get("ignored"):
+        return (f"missing stations: {info['on_printed_tracks']} on printed tracks, ignored "
+                "(--ignore-missing)")
+    return (f"missing stations: {info['used']} fitted as beads narrower than the scan can see "
+            f"(of {info['on_printed_tracks']} on printed tracks)")
 
 
 def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=None):
@@ -174,11 +198,13 @@ def run(args) -> int:
     res, problem = run_fit(pairs, args.model, priors=args.priors, effects=args.effects,
                            student_nu=args.student_t, ar1=not args.no_ar1,
                            max_steps=args.max_steps, max_time_s=args.max_time, seed=args.seed,
-                           progress=not args.quiet, map_only=args.map_only, chi2_max=args.chi2_max)
+                           progress=not args.quiet, map_only=args.map_only, chi2_max=args.chi2_max,
+                           missing=not args.ignore_missing)
     if args.map_only:
         import json
         from calib.fileio import atomic_write_text
         atomic_write_text(args.out, json.dumps({"schema": "calib.fit-map/1", **res.to_json()}, indent=1))
+        print(missing_text(missing_info(problem)))
         for n, v in res.values.items():
             print(f"{n:32s} {v:.6g}")
         return 0
@@ -204,6 +230,8 @@ def summary_text(res) -> str:
     lines = [f"model {res.model}: {res.map.n_obs} samples, rms {res.map.rms_mm * 1000:.1f} um, "
              f"chi2_nu {res.map.chi2_nu:.2f}, BIC {res.map.bic:.1f}, "
              f"elpd_loo {res.loo.get('elpd_loo', float('nan')):.1f}",
+             *([missing_text(res.diagnostics["missing_stations"])]
+               if "missing_stations" in res.diagnostics else []),
              f"{'parameter':32s} {'median':>10s} {'68% interval':>24s} {'95% interval':>24s}"]
     for n, p in res.params.items():
         lines.append(f"{n:32s} {p.median:10.5g} [{p.ci68[0]:10.5g}, {p.ci68[1]:10.5g}] "
