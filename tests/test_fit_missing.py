@@ -108,7 +108,7 @@ def test_censored_term_is_the_normal_log_cdf(vprint):
     m = pr.predict(th, 0)[:, sc.missing_idx]
     for i, sig in enumerate((0.01, 0.03)):
         s = math.sqrt(0.05 ** 2 / 4 + sig ** 2)
-        want = stats.norm.logcdf((0.05 - m[i]) / s)
+        want = np.logaddexp(math.log(0.98) + stats.norm.logcdf((0.05 - m[i]) / s), math.log(0.02))
         np.testing.assert_allclose(ll[i, sc.n_valid:], want, rtol=1e-10, atol=1e-12)
     assert ll[0, sc.n_valid:].sum() < ll[1, sc.n_valid:].sum() - 20   # Kc 0.15 lays beads there
     # log posterior includes them
@@ -117,8 +117,8 @@ def test_censored_term_is_the_normal_log_cdf(vprint):
     # Student-t noise: the Student-t CDF of the same standardised value
     pr_t = _problem(model, sc, student_nu=4.0)
     lt = pr_t.pointwise(th)[0, sc.n_valid:]
-    np.testing.assert_allclose(lt, stats.t.logcdf((0.05 - m[0]) / math.sqrt(0.05 ** 2 / 4 + 0.01 ** 2), 4.0),
-                               rtol=1e-9)
+    np.testing.assert_allclose(lt, np.logaddexp(math.log(0.98) + stats.t.logcdf(
+        (0.05 - m[0]) / math.sqrt(0.05 ** 2 / 4 + 0.01 ** 2), 4.0), math.log(0.02)), rtol=1e-9)
 
 
 def test_only_printed_missing_stations_are_data(vprint):
@@ -182,9 +182,9 @@ def test_missing_stations_narrow_the_flow_threshold(vprint):
     assert np.median(ratios) < 0.7, ratios
 
 
-# -- (c) no bead where the model lays one: strong evidence against it -----------------
+# -- (c) no bead where the model lays one: evidence against it, bounded by misdetection
 
-def test_missing_where_the_model_lays_a_full_bead_costs_a_lot(vprint):
+def test_missing_where_the_model_lays_a_full_bead_costs_the_misdetection_floor(vprint):
     model, man, truth = vprint
     from fit.data import scan_from_table
 
@@ -197,13 +197,14 @@ def test_missing_where_the_model_lays_a_full_bead_costs_a_lot(vprint):
     ll = pr.pointwise(th)[0]
     j = sc.n_valid + int(np.flatnonzero(sc.missing_idx == i)[0])
     others = np.delete(ll[sc.n_valid:], j - sc.n_valid)
-    assert ll[j] < -60                       # ln Phi((0.05 - 0.35) / 0.027) = -64
+    # ln(0.98 Phi((0.05 - 0.35) / 0.027) + 0.02) = ln 0.02: the misdetection floor
+    assert ll[j] == pytest.approx(math.log(0.02), abs=1e-6)
     # before the onset the model lays nothing (ln Phi(1.86) = -0.03) or a bead still under
     # a pixel (the last station before it: -0.1)
     assert np.all(others > -0.5) and np.median(others) > -0.05
     # ... and the fit without the missing data does not see it
     pr_off = _problem(model, sc, missing=False)
-    assert pr.log_prob(th)[0][0] < pr_off.log_prob(th)[0][0] - 60
+    assert pr.log_prob(th)[0][0] < pr_off.log_prob(th)[0][0] - 3.5
 
 
 # -- the switch on the command line ---------------------------------------------------
