@@ -42,7 +42,7 @@ def one(hidden: str, seed: int) -> dict:
                  n_null=100, seed=seed)
     ok = [x for x in d.candidates if np.isfinite(x.delta_bic)]
     top = ok[0]
-    cov = d.covariates[0].name if d.covariates else ""
+    cov = d.named_covariate or (d.covariates[0].name if d.covariates else "")
     says_no_fit = ("explains only part" in d.verdict or "No effect in the library" in d.verdict
                    or "No missing effect" in d.verdict)
     r = {"hidden": hidden, "top": top.effect, "named": top.effect in FAMILY[hidden],

@@ -44,10 +44,15 @@ EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
     "flow_gain": ("width_nominal_mm", "flow_mm3_s"),
     "bed_tilt": ("x_mm", "y_mm"),
     "heading": ("heading_rad",),
+    "spread": ("time_since_flow_change_s",),
 }
 
 #: Delta BIC (AR(1) likelihood) above which an effect is called supported.
 SUPPORTED_DELTA_BIC = 10.0
+#: Reduced chi-square left by the best candidate above which it "explains only part"
+#: (issue #11: "where no library form fits, chi2_nu > 1.5 after"). The covariates are
+#: then scored again on what that candidate leaves, and the verdict names that one.
+NO_FIT_CHI2 = 1.5
 
 
 @dataclass
@@ -83,6 +88,10 @@ class Diagnosis:
     verdict: str = ""
     command: str = ""
     best: str | None = None
+    #: covariates scored on the residuals the best candidate leaves (only when it
+    #: explains part: chi2_nu after > NO_FIT_CHI2), and the covariate the verdict names
+    covariates_after: list[CovariateScore] = field(default_factory=list)
+    named_covariate: str = ""
 
     def to_json(self) -> dict:
         def num(x):
@@ -106,6 +115,9 @@ class Diagnosis:
                            for c in self.candidates],
             "covariates": [{"name": s.name, "score": num(s.score), "r2": num(s.r2),
                             "p_value": num(s.p_value)} for s in self.covariates],
+            "covariates_after": [{"name": s.name, "score": num(s.score), "r2": num(s.r2),
+                                  "p_value": num(s.p_value)} for s in self.covariates_after],
+            "named_covariate": self.named_covariate,
             "best": self.best,
             "verdict": self.verdict,
             "command": self.command,
@@ -176,6 +188,12 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
             c.delta_elpd_loo, c.delta_elpd_loo_se = delta_elpd(c.fit, base)
 
     diag = Diagnosis(model=spec, base=base, covariates=scores, candidates=cands, cov=cov)
+    ok = [c for c in cands if np.isfinite(c.delta_bic) and c.fit is not None]
+    if ok and ok[0].delta_bic > SUPPORTED_DELTA_BIC and ok[0].chi2_nu_after > NO_FIT_CHI2:
+        # what is still missing shows in what the best candidate leaves, not in the base
+        # residuals (there the part it does explain dominates the covariate ranking)
+        diag.covariates_after = score_covariates(ok[0].fit.resid_mm, cov, track=smp.track[o],
+                                                 n_null=n_null, seed=seed)
     _verdict(diag, command_prefix, effects_arg)
     return diag
 
@@ -208,12 +226,19 @@ def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
                      f"{best.delta_bic:.1f}{loo}{ev}. RMS falls from {1000 * b.rms_mm:.1f} to "
                      f"{1000 * best.rms_mm_after:.1f} um, reduced chi-square from {b.chi2_nu:.2f} "
                      f"to {best.chi2_nu_after:.2f}.{runner} Fit it with: {d.command}")
-        if best.chi2_nu_after > 2.0:
+        d.named_covariate = agree[0].name if agree else (top_cov.name if top_cov and top_cov.score > 0 else "")
+        if best.chi2_nu_after > NO_FIT_CHI2:
+            left = d.covariates_after[0] if d.covariates_after else top_cov
+            left_txt = (f"what it leaves lines up best with {left.name} (explains {100 * left.score:.0f} % "
+                        f"of the remaining variance beyond chance, p = {left.p_value:.3g})"
+                        if left is not None and left.score > 0 else cov_txt)
+            d.named_covariate = left.name if left is not None and left.score > 0 else d.named_covariate
             d.verdict += (f" But {best.effect} explains only part of it: reduced chi-square stays at "
-                          f"{best.chi2_nu_after:.2f}, and {cov_txt}. If no library effect fits, "
-                          f"write one that depends on {top_cov.name if top_cov else 'that covariate'} "
+                          f"{best.chi2_nu_after:.2f}, and {left_txt}. If no library effect fits, "
+                          f"write one that depends on {left.name if left else 'that covariate'} "
                           "(docs/DISCOVER.md) and pass it with --effects.")
-    elif b.chi2_nu > 1.5 and top_cov is not None and top_cov.score > 0.05:
+    elif b.chi2_nu > NO_FIT_CHI2 and top_cov is not None and top_cov.score > 0.05:
+        d.named_covariate = top_cov.name
         d.verdict = (f"{head} No effect in the library improves the fit enough (best Delta BIC "
                      f"{best.delta_bic:.1f} for {best.effect}). " if best else f"{head} ") + \
             (f"But {cov_txt}: something that depends on {top_cov.name} is missing. Write it as "

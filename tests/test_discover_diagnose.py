@@ -80,3 +80,37 @@ def test_time_since_stop_is_hand_checkable_on_the_probe_print():
     assert cov["time_since_stop_s"][0] == pytest.approx(0.02 + 4.7 / 30, abs=0.01)
     assert cov["last_stop_duration_s"][0] == pytest.approx(3.0, abs=0.02)
     assert cov["speed_mm_s"][0] == pytest.approx(30.0, abs=0.5)
+
+
+def test_when_the_best_effect_explains_only_part_the_covariate_comes_from_what_it_leaves():
+    """Truth pa + thermal + gear slip (a flow-dependent gain the library lacks), library
+    candidates only: thermal is named and explains the large part (chi2_nu 940 -> 5.7);
+    the covariate the verdict names is scored on what pa+thermal leaves, and is the gear
+    slip's (flow / extruder speed)."""
+    from fit.compare import observe
+    from fit.context import SimContext
+    from fit.hidden import BASE_VALUES, probe_manifest, user_effects
+    from measure.table import WidthTable
+    from patterns.manifest import sample_points
+
+    man = probe_manifest(n_tracks=FAST["n_tracks"], length_mm=FAST["length_mm"])
+    smp = sample_points(man, ds_mm=FAST["ds_mm"], margin_mm=0.5)
+    extra = user_effects()
+    truth = build_model("pa+thermal+gear_slip", man.printer, extra_effects=extra)
+    values = {**BASE_VALUES, "thermal.a": 0.5, "thermal.tau_s": 8.0, "gear_slip.a_s_mm": -0.002,
+              "gear_slip.b_s2_mm2": 0.0}
+    th = np.array([values.get(n, d) for n, d in zip(truth.param_names, truth.default_theta())])
+    w = np.asarray(truth.predict(SimContext.build(man, smp), th))[0]
+    rng = np.random.default_rng(0)
+    ok = np.isfinite(w) & (w > 0.05)
+    table = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                       width_mm=np.where(ok, w + 0.005 * rng.standard_normal(len(w)), 0.0),
+                       width_sd_mm=np.full(len(w), 0.005), valid=ok,
+                       flag=np.where(ok, "", "missing").astype(object))
+    d = diagnose(observe(man, table), "pa", lambda s: build_model(s, man.printer), list(REGISTRY), [],
+                 n_null=50)
+    top = [c for c in d.candidates if np.isfinite(c.delta_bic)][0]
+    assert top.effect == "thermal" and top.chi2_nu_after > 1.5 and "explains only part" in d.verdict
+    assert d.covariates_after and d.named_covariate == d.covariates_after[0].name
+    assert d.named_covariate in {"flow_mm3_s", "extruder_speed_mm_s", "speed_mm_s", "width_nominal_mm"}
+    assert d.named_covariate in d.verdict and d.to_json()["named_covariate"] == d.named_covariate
