@@ -49,7 +49,6 @@ def _log(msg):
 
 def measured_scan(spec: str, seed: int, realism: str = "all"):
     """(ScanData of the measured test track, manifest cut to it, measurement figures)."""
-    from bench.bench_fit import track_only
     from calib.commands.simulate import simulate_scan, write_image
     from fit.data import scan_from_table
     from measure.pipeline import measure_scan
@@ -73,7 +72,7 @@ def measured_scan(spec: str, seed: int, realism: str = "all"):
     # The fit's timeline starts PAD_S before the test track: the extruder's state there
     # comes from the prime line and markers printed before it, and with back-pressure it
     # is still felt 1 s later (146 um at the track start with a 1 s pad, 0.09 um with 5 s, 0 with 10 s).
-    cut = track_only(man, pad_s=PAD_S)
+    cut = man.cut_to_test_tracks(pad_s=PAD_S)
     return scan_from_table(tb, cut, f"seed{seed}"), cut, figs
 
 

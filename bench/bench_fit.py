@@ -70,18 +70,6 @@ def _log(msg):
     print(f"  bench_fit: {msg}", file=sys.stderr, flush=True)
 
 
-def track_only(man, pad_s: float = 1.0):
-    """``man`` with only its test tracks and the timeline cut to them (+- ``pad_s``)."""
-    from dataclasses import replace
-
-    tl = man.timeline
-    ids = [t.id for t in man.tracks if t.kind == "test"]
-    on = np.flatnonzero(np.isin(tl.track, ids))
-    keep = (tl.t_s >= tl.t_s[on[0]] - pad_s) & (tl.t_s <= tl.t_s[on[-1]] + pad_s)
-    return replace(man, tracks=[t for t in man.tracks if t.kind == "test"], fiducials=[],
-                   labels=[], timeline=tl.slice(keep))
-
-
 def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=6, step_s=(3.0,),
               trim=True, widths_mm=(0.35, 0.8), noise=None):
     """(model, ScanData, manifest) of a noisy virtual spiral-step print (``noise`` as
@@ -97,7 +85,7 @@ def make_data(profile_name, spec, values, seed, speeds=(20.0,), n_steps=6, step_
     _, man = spiral_step.generate(prof, speeds_mm_s=speeds, n_steps=n_steps, step_s=step_s,
                                   widths_mm=widths_mm)
     if trim:
-        man = track_only(man)
+        man = man.cut_to_test_tracks()
     model = build_model(spec, prof)
     t = print_virtual(man, model, values).table
     t.width_sd_mm[:] = noise["sd_mm"]

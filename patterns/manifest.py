@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -196,6 +196,18 @@ class Manifest:
 
     def test_tracks(self) -> list[Track]:
         return [tr for tr in self.tracks if tr.kind == "test"]
+
+    def cut_to_test_tracks(self, pad_s: float = 1.0) -> "Manifest":
+        """This manifest with only its test tracks and the timeline cut to them +- ``pad_s``
+        (s). A fit on it skips simulating the frame, markers and labels (~90 % of a
+        pattern's timeline); the extruder starts from rest ``pad_s`` before the first test
+        track, so the pad must cover whatever state the print before leaves (a few s with
+        bead back-pressure: bench/bench_e2e.py)."""
+        tl = self.timeline
+        ids = [t.id for t in self.test_tracks()]
+        on = np.flatnonzero(np.isin(tl.track, ids))
+        keep = (tl.t_s >= tl.t_s[on[0]] - pad_s) & (tl.t_s <= tl.t_s[on[-1]] + pad_s)
+        return replace(self, tracks=self.test_tracks(), fiducials=[], labels=[], timeline=tl.slice(keep))
 
     # -- io ---------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:

@@ -14,19 +14,6 @@ import pytest
 from calib.cli import main
 
 
-def _track_only(man, pad_s: float = 1.0):
-    """``man`` with only its test tracks and the timeline cut to them (+- ``pad_s``)."""
-    from dataclasses import replace
-
-    tl = man.timeline
-    ids = [t.id for t in man.tracks if t.kind == "test"]
-    on = np.flatnonzero(np.isin(tl.track, ids))
-    keep = (tl.t_s >= tl.t_s[on[0]] - pad_s) & (tl.t_s <= tl.t_s[on[-1]] + pad_s)
-    cut = tl.slice(keep)
-    return replace(man, tracks=[t for t in man.tracks if t.kind == "test"], fiducials=[],
-                   labels=[], timeline=cut)
-
-
 @pytest.fixture(scope="module")
 def scan(tmp_path_factory):
     from fit.model import build_model
@@ -37,7 +24,7 @@ def scan(tmp_path_factory):
     d = tmp_path_factory.mktemp("fitcli")
     prof = load_profile("direct_drive")
     _, man = spiral_step.generate(prof, speeds_mm_s=(20.0,), n_steps=4, step_s=(3.0,))
-    man = _track_only(man)
+    man = man.cut_to_test_tracks()
     mp = man.save(d / "a.manifest.json")
     t = print_virtual(man, build_model("pa", prof), {"pa.tau_s": 0.05}).table
     rng = np.random.default_rng(0)
@@ -187,7 +174,7 @@ def test_misfit_is_flagged_and_the_right_model_is_not(tmp_path, capsys):
 
     prof = load_profile("direct_drive")
     _, man = spiral_step.generate(prof, speeds_mm_s=(20.0,), n_steps=4, step_s=(3.0,))
-    man = _track_only(man)
+    man = man.cut_to_test_tracks()
     mp = man.save(tmp_path / "t.manifest.json")
     truth = {"pa.tau_s": 0.05, "thermal.a": 0.3, "thermal.tau_s": 3.0}
     t = print_virtual(man, build_model("pa+thermal", prof), truth).table

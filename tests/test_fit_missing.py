@@ -18,18 +18,6 @@ from scipy import stats
 TRUTH = {"pa.tau_s": 0.043, "offset.kc_mm": 0.2}
 
 
-def _track_only(man, pad_s: float = 1.0):
-    """``man`` with only its test tracks and the timeline cut to them (+- ``pad_s``)."""
-    from dataclasses import replace
-
-    tl = man.timeline
-    ids = [t.id for t in man.tracks if t.kind == "test"]
-    on = np.flatnonzero(np.isin(tl.track, ids))
-    keep = (tl.t_s >= tl.t_s[on[0]] - pad_s) & (tl.t_s <= tl.t_s[on[-1]] + pad_s)
-    return replace(man, tracks=[t for t in man.tracks if t.kind == "test"], fiducials=[],
-                   labels=[], timeline=tl.slice(keep))
-
-
 @pytest.fixture(scope="module")
 def vprint():
     """(model, manifest, true widths table) of the virtual print."""
@@ -41,7 +29,7 @@ def vprint():
     prof = load_profile("direct_drive")
     _, man = spiral_step.generate(prof, speeds_mm_s=(20.0,), n_steps=2, step_s=(2.0,),
                                   widths_mm=(0.35, 0.8))
-    man = _track_only(man)
+    man = man.cut_to_test_tracks()
     model = build_model("pa+offset", prof)
     truth = print_virtual(man, model, TRUTH).table
     assert truth.valid.all()
