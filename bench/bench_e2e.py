@@ -113,7 +113,11 @@ def _run(jobs, workers):
     with process_pool(workers, initializer=set_threads, initargs=(1,)) as ex:
         for i, r in enumerate(ex.map(_one, jobs)):
             res.append(r)
-            _log(f"{i + 1}/{len(jobs)} {r['spec']} seed {r['seed']} ({time.perf_counter() - t0:.0f} s)")
+            fits = "; ".join(
+                f"{m}: " + (f["error"][:60] if "error" in f else ", ".join(
+                    f"{n.split('.')[-1]} {v[0]:.4g} [{v[1]:.4g}, {v[2]:.4g}]" for n, v in f.items() if n != "converged"))
+                for m, f in r["fits"].items()) or r.get("error", "")
+            _log(f"{i + 1}/{len(jobs)} {r['spec']} seed {r['seed']} ({time.perf_counter() - t0:.0f} s) {fits}")
     return res
 
 
