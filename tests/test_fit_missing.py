@@ -197,7 +197,7 @@ def test_missing_where_the_model_lays_a_full_bead_costs_the_misdetection_floor(v
 
 # -- the switch on the command line ---------------------------------------------------
 
-def test_cli_reports_and_ignores_missing_stations(vprint, tmp_path, capsys):
+def test_cli_reports_and_ignores_missing_stations(vprint, tmp_path, capsys, monkeypatch):
     from calib.cli import main
 
     _, man, truth = vprint
@@ -215,3 +215,16 @@ def test_cli_reports_and_ignores_missing_stations(vprint, tmp_path, capsys):
     f, g = (json.loads((tmp_path / n).read_text()) for n in ("f.json", "g.json"))
     assert f["n_missing"] == n_miss and g["n_missing"] == 0
     assert f["n_obs"] == g["n_obs"] + n_miss
+    # --model auto searches on the same data: with --ignore-missing, without them
+    import fit.auto
+    seen = []
+
+    def fake_auto(scan, *a, **k):
+        seen.append(scan.n_missing)
+        raise SystemExit(0)
+    monkeypatch.setattr(fit.auto, "auto_model", fake_auto)
+    for extra in ([], ["--ignore-missing"]):
+        with pytest.raises(SystemExit):
+            main(["fit", str(w), "--manifest", str(mp), "--model", "auto", "--quiet",
+                  "-o", str(tmp_path / "h.json")] + extra)
+    assert seen == [n_miss, 0]

@@ -91,7 +91,8 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         extra = tuple(load_effects_file(effects))
     auto = None
     if model_spec == "auto":
-        auto = choose_model(pairs, effects, extra, seed=seed, progress=progress, chi2_max=chi2_max)
+        auto = choose_model(pairs, effects, extra, seed=seed, progress=progress, chi2_max=chi2_max,
+                            missing=missing)
         model_spec = auto.model
     from fit import measurement
 
@@ -157,8 +158,9 @@ def missing_text(info: dict) -> str:
             f"(of {info['on_printed_tracks']} on printed tracks)")
 
 
-def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=None):
-    """``--model auto`` (fit/auto.py) on the one scan of ``pairs``; prints the chain."""
+def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=None, missing=True):
+    """``--model auto`` (fit/auto.py) on the one scan of ``pairs``; prints the chain.
+    ``missing`` False (--ignore-missing): the search does not fit the missing stations either."""
     from fit.auto import auto_model
     from fit.compare import observe
     from fit.effects import REGISTRY
@@ -173,6 +175,8 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     widths, manifest_path = pairs[0]
     manifest = Manifest.load(manifest_path)
     scan = observe(manifest, WidthTable.load(widths))
+    if not missing:
+        scan.missing_idx = scan.missing_idx[:0]
     res = auto_model(scan, lambda s: build_model(s, manifest.printer, extra_effects=extra),
                      list(REGISTRY), [c.name for c in extra], seed=seed, progress=progress,
                      chi2_max=CHI2_NU_MAX if chi2_max is None else chi2_max)
