@@ -181,6 +181,14 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
     and breaks only their alignment. The score is the excess over the null mean,
     (R^2 - E0[R^2]) / (1 - E0[R^2]), so covariates with few distinct values (which fit
     noise with fewer bins) and smooth ones are comparable. Sorted best first.
+
+    A covariate that is constant along every track (``track`` given; e.g. the speed of
+    each line of a ladder test) is a track label in disguise: any difference between
+    tracks that the model misses lines up with it, whatever caused it. Its null instead
+    reassigns the per-track values among the tracks at random (the residuals stay as they
+    are), so it scores only by how it *groups* the tracks beyond what any labelling of
+    them does; with one value per track it cannot score at all, which is the truth: such
+    a test cannot tell that covariate from any other property of the lines.
     """
     r = np.asarray(resid, dtype=float)
     ok = np.isfinite(r)
@@ -193,9 +201,11 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
     lo = max(1, n // 20)
     lags = rng.integers(lo, max(lo + 1, n - lo), size=n_null) if n > 2 else np.zeros(0, int)
     null_r = np.stack([np.roll(rr, int(L)) for L in lags]) if len(lags) else np.zeros((0, n))
+    trk = None if track is None else np.asarray(track)[ok][order]
     for name in names:
         c = np.asarray(cov[name], dtype=float)[ok][order]
         good = np.isfinite(c)
+        shuffled = _track_shuffles(c, trk, good, n_null, rng) if trk is not None else None
         if good.sum() < 3:
             out.append(CovariateScore(name, 0.0, 0.0, 0.0, 1.0, np.zeros(0), np.zeros(0)))
             continue
@@ -204,7 +214,13 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
             out.append(CovariateScore(name, 0.0, 0.0, 0.0, 1.0, centres, np.zeros(len(centres))))
             continue
         r2, means = _binned_r2(rr[good][None, :], bins, len(centres))
-        r2n, _ = _binned_r2(null_r[:, good], bins, len(centres)) if len(null_r) else (np.zeros(1), None)
+        if shuffled is not None:      # a per-track covariate: relabel the tracks instead
+            r2n = np.empty(len(shuffled))
+            for i, cs in enumerate(shuffled):
+                b, cen = _bins(cs, n_bins)
+                r2n[i] = _binned_r2(rr[good][None, :], b, len(cen))[0][0]
+        else:
+            r2n, _ = _binned_r2(null_r[:, good], bins, len(centres)) if len(null_r) else (np.zeros(1), None)
         null_mean = float(np.mean(r2n))
         score = max(0.0, (float(r2[0]) - null_mean) / max(1e-12, 1.0 - null_mean))
         p = (1.0 + float(np.sum(r2n >= r2[0]))) / (1.0 + len(r2n))
@@ -214,6 +230,23 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
 
 
 # -- helpers ---------------------------------------------------------------------------
+
+def _track_shuffles(c: np.ndarray, trk: np.ndarray, good: np.ndarray, n: int, rng):
+    """If ``c`` is constant along every track (and takes >= 2 values over >= 3 tracks):
+    ``n`` copies of c[good] with the per-track values reassigned among the tracks at
+    random; else None."""
+    cg, tg = c[good], trk[good]
+    ids, inv = np.unique(tg, return_inverse=True)
+    if len(ids) < 3:
+        return None
+    lo = np.full(len(ids), np.inf)
+    hi = np.full(len(ids), -np.inf)
+    np.minimum.at(lo, inv, cg)
+    np.maximum.at(hi, inv, cg)
+    if np.any(hi - lo > 1e-9 * max(1.0, float(np.max(np.abs(cg))))) or len(np.unique(lo)) < 2:
+        return None
+    return [lo[rng.permutation(len(ids))][inv] for _ in range(n)]
+
 
 def _bins(c: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
     """Bin index per value and bin centres: distinct values if few, else equal-count bins."""

@@ -69,6 +69,30 @@ def test_covariate_score_finds_the_driving_covariate_and_not_an_autocorrelated_b
     assert by["time_since_stop_s"].score < 0.2
 
 
+def test_a_per_track_covariate_is_not_a_track_label():
+    """Residuals that differ between tracks for no reason a covariate knows: a covariate
+    constant along each track with one value per track (a track label in disguise, like
+    the probe's last_stop_duration_s) scores nothing against the relabelled-tracks null;
+    one whose values group the tracks as the residuals do scores high."""
+    from fit.covariates import Covariates
+
+    rng = np.random.default_rng(2)
+    n_tr, n_per = 8, 120
+    track = np.repeat(np.arange(n_tr), n_per)
+    t = np.arange(n_tr * n_per) * 0.01
+    offset = rng.normal(0, 0.01, n_tr)                       # per-track misfit, no cause
+    label = np.repeat(rng.permutation(n_tr) * 1.5 + 2.0, n_per)   # unique per track
+    group = np.repeat(np.arange(n_tr) % 2, n_per).astype(float)   # two values over 8 tracks
+    resid = offset[track] + 0.05 * group + 0.003 * rng.standard_normal(len(track))
+    cov = Covariates({"label_s": label, "group": group, "t_s": t})
+    by = {x.name: x for x in score_covariates(resid, cov, track=track, n_null=200)}
+    assert by["label_s"].score < 0.05 and by["label_s"].p_value > 0.3
+    assert by["group"].score > 0.3 and by["group"].p_value < 0.05
+    # without the track ids the label looks like the cause (the old behaviour)
+    old = {x.name: x for x in score_covariates(resid, cov, n_null=200)}
+    assert old["label_s"].score > 0.5
+
+
 def test_time_since_stop_is_hand_checkable_on_the_probe_print():
     c = make_case("thermal", seed=0, **FAST)
     tr = c.manifest.track(0)
