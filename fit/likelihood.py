@@ -27,15 +27,14 @@ conditional one. Optionally the standardised innovation v / sqrt(F) is Student-t
 (robust option, heavy tails for blobs/glare; the filter update stays the Gaussian one).
 
 Why the white term is separate (it was not until issue #11 item 5: the whole standardised
-residual was AR(1)): on realistic renders the bead's own width wanders smoothly (filament
-diameter, plate texture) while the measurement error of neighbouring stations, 0.25 mm =
-6 px apart at 600 dpi, is nearly independent. One AR(1) for the sum fitted ell ~ 5-9 mm to
-the smooth wander and then treated the measurement error as that smooth too: the
-whitened residual kept only the sharp transitions, where the measurement is worst, and
-the `pa` tau came out 8-13 % high with a 90 % interval of +-2 % (bench_e2e). Correlation
-along the track matters in the first place because stations are 0.25 mm apart but bead
-wobble correlates widths over ~0.5-2 mm: independent samples overstate the information
-by (1 + rho) / (1 - rho).
+residual was one AR(1)): the bead's own width wanders smoothly (filament diameter, plate
+texture) while the measurement error of neighbouring stations, 0.25 mm = 6 px apart at
+600 dpi, is nearly independent; one AR(1) for the sum fitted ell ~5-9 mm to the wander
+and then treated the measurement error as that smooth too. (On the renders of bench_e2e
+that was not the main cause of `pa` reading tau 8-13 % high with +-2 % intervals: the
+bead's own smoothing was, fit.effects.Spread.) Correlation along the track matters in the
+first place because stations are 0.25 mm apart but bead wobble correlates widths over
+~0.5-2 mm and more: independent samples overstate the information by (1 + rho) / (1 - rho).
 
 The pointwise terms (one per sample, conditional on the previous ones) are what PSIS-LOO
 uses; with correlated residuals that is a leave-one-out of the innovation, the usual
