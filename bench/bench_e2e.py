@@ -130,6 +130,8 @@ def run() -> list[Row]:
     rows: list[Row] = []
     for spec, (values, _, models) in CASES.items():
         rs = [r for r in res if r["spec"] == spec]
+        if not rs:
+            continue
         meas = [r for r in rs if "error" not in r]
         if meas:
             rows.append(Row("e2e", f"truth {spec}: measured width RMS / bias vs truth, median of {len(meas)} "

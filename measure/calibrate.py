@@ -25,6 +25,15 @@ measured width). Its sd becomes the prior width of the fit's ``scan_bias.b0_mm``
 (fit/effects.py ScanBias), so the fit neither trusts the offset more than measured nor
 lets it masquerade as back-pressure.
 
+Glare: a reference line that faces the light has a specular streak along one flank on
+every station (measure/edges.py). The plain edge pair reads such a bead wide, the edge pair
+with the streak, whose depth on the flank is then at its bound, reads it narrow: on 600 dpi
+flatbed renders the offset came out -25 / -36 um (truth -34) on one print and -24 / -42
+(truth -29) on another, the intercept b0 amplifying the 0.4 mm sections' error by w_max /
+(w_max - w_min). When most reference stations carry a streak, both are computed and the
+offset is their midpoint, with half their difference added to its sd in quadrature: a
+bracket, not a confident number, and the fit's ``scan_bias`` prior widens with it.
+
 Limits: a flow still settling at the end of a section (a time constant tau above
 ~SETTLE_S / 4, thermal ooze) biases b0 by ~exp(-SETTLE_S / tau) of the width step: a
 section whose width drifts over its settled part is a warning, and above MAX_TREND_MM
@@ -46,7 +55,9 @@ MIN_STATIONS = 12
 #: The calibration is not applied when a section's width drifts by more than this (mm)
 #: over its settled part, or when the offset's sd exceeds MAX_OFFSET_SD_MM.
 MAX_TREND_MM = 0.010
-MAX_OFFSET_SD_MM = 0.010
+#: (an offset known to +-15 um still beats none: apparent widths on realistic renders are
+#: 30-50 um narrow, and the sd becomes the fit's scan_bias prior)
+MAX_OFFSET_SD_MM = 0.015
 #: Profile windows of neighbouring stations overlap: one in this many is independent.
 STATIONS_PER_INDEPENDENT = 4
 
@@ -61,6 +72,7 @@ class WidthCalibration:
     gain_sd         its sd
     sections        per section: commanded width, median apparent width, its sd, stations
     applied         whether the widths were corrected
+    glare_bracket_mm  (plain, streak) offsets when the reference was in glare (see above)
     note            one line for the summary and the CLI
     warnings        e.g. a width still changing inside a settled section
     """
@@ -71,6 +83,7 @@ class WidthCalibration:
     gain_sd: float = float("nan")
     sections: list = field(default_factory=list)
     applied: bool = False
+    glare_bracket_mm: tuple | None = None
     note: str = ""
     warnings: list = field(default_factory=list)
 
@@ -112,11 +125,13 @@ def reference_stations(manifest: Manifest, ds_mm: float = 0.25) -> tuple[Samples
     return sub, section[keep]
 
 
-def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2) -> WidthCalibration:
+def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
+              plain_width_mm=None) -> WidthCalibration:
     """Fit eq. (1) to measured apparent widths at the reference stations.
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
-    height_mm: the reference's layer height. A flow factor g scales the bead's area, so
+    height_mm: the reference's layer height; plain_width_mm: the plain edge pair's widths
+    when the reference is in glare (module docstring: the offset is then bracketed). A flow factor g scales the bead's area, so
     the physical width is g w + (1 - g) h (1 - pi/4) (fit/geometry.py rounded rectangle):
     that small (1 - g) term is taken out of the intercept before it is called b0.
     """
@@ -154,6 +169,18 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2) -> W
     b0 = b0 - (1.0 - g) * height_mm * (1.0 - np.pi / 4.0)
     cal.gain, cal.offset_mm = float(g), float(b0)
     cal.gain_sd, cal.offset_sd_mm = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
+    if plain_width_mm is not None:
+        plain = calibrate(plain_width_mm, valid, nominal_mm, section, height_mm)
+        if np.isfinite(plain.offset_mm):
+            cal.glare_bracket_mm = (plain.offset_mm, cal.offset_mm)
+            half = 0.5 * abs(cal.offset_mm - plain.offset_mm)
+            b0 = 0.5 * (cal.offset_mm + plain.offset_mm)
+            cal.offset_mm = float(b0)
+            cal.offset_sd_mm = float(np.hypot(cal.offset_sd_mm, half))
+            cal.warnings.append(f"the width reference is in glare: its edge offset lies between "
+                                f"{min(cal.glare_bracket_mm) * 1000:+.0f} and {max(cal.glare_bracket_mm) * 1000:+.0f} um "
+                                "(plain edges / glare streak modelled); using the middle with that uncertainty. "
+                                "Scan or photograph with the light along the prime line, or matte plastic")
     unsettled = [r for r in rows if abs(r["trend_mm"]) > max(6 * r["apparent_sd_mm"], 0.004)]
     for r in unsettled:
         cal.warnings.append(f"width reference {r['width_commanded_mm']:.2f} mm still changes by "

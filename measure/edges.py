@@ -9,6 +9,21 @@ sd ``s``) on a locally linear background (uneven light). With profile coordinate
 (shared/REFERENCE.md "Measuring width in images": sd 2 um at 600 dpi with this model).
 ``A`` > 0 is light plastic on a dark plate, ``A`` < 0 dark plastic on a light plate.
 
+Glare: glossy plastic lit from one side shows a specular streak on the flank facing the
+light, a line narrower than the optics' blur inside that edge, where the flank's slope is
+half the light's zenith angle (15-30 deg for a lamp or window 30-60 deg above the bed:
+0.5-0.75 of the flank's radius h/2 from the edge on a round flank). It brightens the
+edge's shoulder, and the plain model read the bead up to +12 um wide at the headings
+facing the light (600 dpi flatbed render). :func:`fit_streak` adds it:
+
+    f_g(t) = f(t) + G * exp(-(t - c_g)^2 / (2 s^2)),   c_g = c + side * (w/2 - d)
+
+with G >= 0 (specular light only adds, whatever the polarity) and the depth d inside the
+edge bounded to the outer flank, STREAK_FLANK x h/2 (mm). Both bounds matter: a free
+position fits the crown's Lambert shading as a "streak" and shrank every bead by 15-20 um;
+a streak allowed onto the edge itself is an edge shift, and with the blur free the
+prime line's sections then disagreed by 18 um.
+
 :func:`fit_profiles` fits many profiles at once with a batched Levenberg-Marquardt
 (numpy, no Python loop over profiles): the same least-squares problem that
 ``scipy.optimize.least_squares`` would solve one profile at a time, ~100x faster.
@@ -26,6 +41,14 @@ _TWO_OVER_SQRTPI = 2.0 / np.sqrt(np.pi)
 
 #: Parameter order of the edge-pair model.
 PARAMS = ("b0", "b1", "A", "c", "w", "s")
+#: Parameter order of the edge pair with a glare streak (:func:`fit_streak`).
+STREAK_PARAMS = PARAMS + ("G", "d")
+#: Where on the flank the streak may sit: depth d inside its edge, as fractions of the
+#: flank radius h/2 (module docstring: 0.5-0.75 for light 30-60 deg above the bed). The
+#: lower bound is active on strong streaks, and it matters: on 600 dpi flatbed renders
+#: (glare from 45 deg, true depth 0.62) the prime line read -36 um with 0.4, -41 with 0.3,
+#: -32 with 0.5 (the streak-free truth: -34 um).
+STREAK_FLANK = (0.4, 1.0)
 
 
 @dataclass
@@ -66,7 +89,9 @@ def edge_pair(t, p) -> np.ndarray:
     return b0 + b1 * t + 0.5 * A * (erf(z1) - erf(z2))
 
 
-def _model_and_jac(t, p, fixed_s: bool):
+def _model_and_jac(t, p, fixed_s: bool, side: float = 0.0):
+    """Model and Jacobian over the free parameters: PARAMS (without s when fixed_s), then
+    G, d when ``side`` is -1 or +1 (the streak on the low-t or high-t edge)."""
     b0, b1, A, c, w, s = (p[:, k:k + 1] for k in range(6))
     k = 1.0 / (SQRT2 * s)
     z1 = (t - c + w / 2) * k
@@ -78,7 +103,23 @@ def _model_and_jac(t, p, fixed_s: bool):
     cols = [np.ones_like(t), t, 0.5 * (e1 - e2), 0.5 * A * k * (g2 - g1), 0.25 * A * k * (g1 + g2)]
     if not fixed_s:
         cols.append(0.5 * A / s * (z2 * g2 - z1 * g1))
+    if side:
+        G, dep = p[:, 6:7], p[:, 7:8]
+        d = t - (c + side * (w / 2 - dep))
+        g = np.exp(-0.5 * (d / s) ** 2)
+        f = f + G * g
+        dg = G * g * d / (s * s)            # d f / d c_g
+        cols[3] = cols[3] + dg
+        cols[4] = cols[4] + 0.5 * side * dg
+        if not fixed_s:                     # the streak is as wide as the blur
+            cols[5] = cols[5] + dg * d / s
+        cols += [g, -side * dg]
     return f, np.stack(cols, axis=-1)
+
+
+def _free_columns(fixed_s: bool, side: float) -> list[int]:
+    cols = [0, 1, 2, 3, 4] + ([] if fixed_s else [5])
+    return cols + ([6, 7] if side else [])
 
 
 def initial_guess(t, y, polarity: float, s0) -> np.ndarray:
@@ -115,26 +156,51 @@ def fit_profiles(t, y, p0, fixed_s: bool = False, weights=None, n_iter: int = 30
              nearly degenerate.
     weights  (N, M) 0/1 mask of usable samples (e.g. inside the image); default all.
     """
+    return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=0.0)
+
+
+def fit_streak(t, y, p_plain, side: float, height_mm, fixed_s: bool = True, weights=None,
+               n_iter: int = 30, chunk: int = 4000) -> ProfileFit:
+    """The edge pair plus a glare streak on one flank (module docstring), started from a
+    plain fit ``p_plain`` (N, 6); the blur is held at its value unless ``fixed_s`` is False.
+    ``side`` -1: the streak is on the low-t edge, +1 on the high-t edge. ``height_mm``
+    (scalar or (N,)) the bead height, which bounds the streak's depth to the flank. Returns
+    params (N, 8) in STREAK_PARAMS order. Compare its ``rms`` with the plain fit's to
+    decide whether a streak is there."""
+    p_plain = np.asarray(p_plain, float)
+    n = len(p_plain)
+    r = 0.5 * np.broadcast_to(np.asarray(height_mm, float), (n,))
+    lo, hi = STREAK_FLANK[0] * r, STREAK_FLANK[1] * r
+    amp = np.abs(p_plain[:, 2:3])
+    p0 = np.column_stack([p_plain, 0.05 * amp, 0.5 * (lo + hi)])
+    return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=float(side),
+                    depth_bounds=np.column_stack([lo, hi]))
+
+
+def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None):
     t = np.asarray(t, float)
     y = np.asarray(y, float)
     p0 = np.asarray(p0, float)
     wts = np.ones_like(y) if weights is None else np.asarray(weights, float)
-    out = [_fit_chunk(t[i:i + chunk], y[i:i + chunk], p0[i:i + chunk], fixed_s, wts[i:i + chunk], n_iter)
+    db = np.zeros((len(t), 2)) if depth_bounds is None else depth_bounds
+    out = [_fit_chunk(t[i:i + chunk], y[i:i + chunk], p0[i:i + chunk], fixed_s, wts[i:i + chunk], n_iter, side,
+                      db[i:i + chunk])
            for i in range(0, len(t), chunk)]
     if not out:
-        z = np.zeros((0, 6))
+        z = np.zeros((0, p0.shape[1] if p0.ndim == 2 else 6))
         return ProfileFit(z, z.copy(), np.zeros(0), np.zeros(0, bool))
     return ProfileFit(*(np.concatenate(parts) for parts in zip(*out)))
 
 
-def _fit_chunk(t, y, p, fixed_s, wts, n_iter):
+def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
     n = len(t)
-    npar = 5 if fixed_s else 6
+    free = _free_columns(fixed_s, side)
+    npar = len(free)
     p = p.copy()
     span = t[:, -1] - t[:, 0]
     step = np.abs(t[:, 1] - t[:, 0])
     lam = np.full(n, 1e-2)
-    f, J = _model_and_jac(t, p, fixed_s)
+    f, J = _model_and_jac(t, p, fixed_s, side)
     r = (y - f) * wts
     cost = np.einsum("nm,nm->n", r, r)
     eye = np.eye(npar)
@@ -155,18 +221,21 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter):
         except np.linalg.LinAlgError:
             delta = _safe_solve(A, JTr)
         trial = pa.copy()
-        trial[:, :npar] += delta
+        trial[:, free] += delta
         # Keep the geometry physical: positive width and blur, centre inside the window.
         trial[:, 4] = np.clip(trial[:, 4], 0.2 * step[act], 2 * span[act])
         if not fixed_s:
             trial[:, 5] = np.clip(trial[:, 5], 0.1 * step[act], 0.5 * span[act])
         trial[:, 3] = np.clip(trial[:, 3], ta[:, 0], ta[:, -1])
-        f_t, J_t = _model_and_jac(ta, trial, fixed_s)
+        if side:
+            trial[:, 6] = np.clip(trial[:, 6], 0.0, None)
+            trial[:, 7] = np.clip(trial[:, 7], depth_bounds[act, 0], depth_bounds[act, 1])
+        f_t, J_t = _model_and_jac(ta, trial, fixed_s, side)
         r_t = (y[act] - f_t) * wa
         cost_t = np.einsum("nm,nm->n", r_t, r_t)
         better = cost_t < cost[act]
         ib = act[better]
-        small = (np.abs(delta) <= 1e-6 * (np.abs(pa[:, :npar]) + 1e-3 * span[act, None])).all(axis=1)
+        small = (np.abs(delta) <= 1e-6 * (np.abs(pa[:, free]) + 1e-3 * span[act, None])).all(axis=1)
         rel_gain = (cost[act] - cost_t) / np.maximum(cost[act], 1e-300)
         p[ib], r[ib], J[ib], cost[ib] = trial[better], r_t[better], J_t[better], cost_t[better]
         lam[act] = np.where(better, lam[act] * 0.3, lam[act] * 10.0)
@@ -178,8 +247,8 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter):
     dof = np.maximum(m_eff - npar, 1)
     var = cost / dof
     cov = _safe_inv(JTJ) * var[:, None, None]
-    sd = np.full((n, 6), np.nan)
-    sd[:, :npar] = np.sqrt(np.clip(np.einsum("nii->ni", cov), 0, None))
+    sd = np.full(p.shape, np.nan)
+    sd[:, free] = np.sqrt(np.clip(np.einsum("nii->ni", cov), 0, None))
     if fixed_s:
         sd[:, 5] = 0.0
     ok = (np.isfinite(p).all(axis=1) & np.isfinite(sd[:, 4]) & (p[:, 4] > 0.25 * step)

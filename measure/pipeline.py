@@ -26,6 +26,8 @@ MIN_VALID_FRACTION = 0.2
 #: Below this scale a 0.4 mm bead spans < 4 px and the edge pair's width and blur cannot be
 #: told apart (a 200 dpi scan: 7.9 px/mm); 300 dpi is 11.8 px/mm.
 MIN_PX_PER_MM = 10.0
+#: The width reference is "in glare" when more of its valid stations than this carry a streak.
+GLARE_REFERENCE_SHARE = 0.5
 
 
 class MeasureRefused(UserError):
@@ -147,9 +149,11 @@ def _resolution_px_per_mm(reg, table) -> float:
     return float(np.median(reg.px_per_mm(xy[:: max(1, len(xy) // 500)])))
 
 
-def apparent_width_calibration(gray, color, manifest, reg):
+def apparent_width_calibration(gray, color, manifest, reg, blur_plane_px=None):
     """measure/calibrate.py on the print's width-reference prime line, measured like the
-    test tracks; an unapplied WidthCalibration saying why when the print has none."""
+    test tracks (with their blur plane ``blur_plane_px`` when given: a line at one heading
+    can be in glare all along, and the blur is read on streak-free beads); an unapplied
+    WidthCalibration saying why when the print has none."""
     from measure.calibrate import WidthCalibration, calibrate, reference_stations
 
     ref = reference_stations(manifest)
@@ -157,9 +161,12 @@ def apparent_width_calibration(gray, color, manifest, reg):
         return WidthCalibration(note="no apparent-width calibration: the print has no width-reference prime "
                                      "line (third-party G-code?); widths are apparent widths")
     smp, section = ref
-    m = measure_widths(gray, smp, reg, manifest=manifest, color=color)
+    m = measure_widths(gray, smp, reg, manifest=manifest, color=color, blur_plane_px=blur_plane_px)
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
-    return calibrate(m.table.width_mm, m.table.valid, smp.width_nominal_mm, section, height_mm=h)
+    ok = m.table.valid
+    in_glare = bool(ok.any()) and m.glare_streak[ok].mean() > GLARE_REFERENCE_SHARE
+    return calibrate(m.table.width_mm, ok, smp.width_nominal_mm, section, height_mm=h,
+                     plain_width_mm=m.plain_width_mm if in_glare else None)
 
 
 def _register(gray, manifest, points) -> Registration:

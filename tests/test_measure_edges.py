@@ -42,3 +42,31 @@ def test_fixed_blur_is_kept_and_reduces_narrow_bead_scatter():
     assert np.all(fixed.params[:, 5] == 0.06)
     narrow = p[:, 4] < 0.4
     assert np.std((fixed.width - p[:, 4])[narrow]) < 0.8 * np.std((free.width - p[:, 4])[narrow])
+
+
+@pytest.mark.parametrize("side", [-1.0, 1.0])
+def test_a_glare_streak_on_one_flank_is_fitted_and_the_width_recovered(side):
+    """Box + a blur-wide specular line 0.06 mm inside one edge (bead height 0.2 mm): the
+    plain edge pair reads the bead wide; the streak model, with the blur held, does not,
+    and on the wrong side it explains less."""
+    from measure.edges import STREAK_PARAMS, fit_streak
+
+    rng = np.random.default_rng(3)
+    n, s = 200, 0.04
+    w = rng.uniform(0.35, 1.0, n)
+    t = np.linspace(-1, 1, 120)[None] * (w / 2 + 0.5)[:, None]
+    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), rng.normal(0, 0.02, n), w, np.full(n, s)])
+    cg = p[:, 3] + side * (w / 2 - 0.06)
+    y = edge_pair(t, p) + 0.2 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.005, t.shape)
+    p0 = initial_guess(t, y, 1.0, s)
+    plain = fit_profiles(t, y, p0, fixed_s=True)
+    assert np.mean(plain.width - w) > 0.005
+    right = fit_streak(t, y, plain.params, side, height_mm=0.2)
+    wrong = fit_streak(t, y, plain.params, -side, height_mm=0.2)
+    assert right.params.shape[1] == len(STREAK_PARAMS) and right.ok.all()
+    assert abs(np.mean(right.width - w)) < 0.001 and np.std(right.width - w) < 0.003
+    np.testing.assert_allclose(right.params[:, 6], 0.2, rtol=0.1)     # G
+    np.testing.assert_allclose(right.params[:, 7], 0.06, atol=0.005)  # depth inside the edge (mm)
+    assert np.all(right.rms < 0.7 * wrong.rms)
+    z = (right.width - w) / right.width_sd
+    assert 0.55 < np.mean(np.abs(z) < 1) < 0.8

@@ -160,6 +160,45 @@ def test_profile_beads_are_apparently_narrower_and_the_reference_line_corrects_i
     assert np.mean(err + cal["offset_mm"]) < -0.015        # the apparent widths were not
 
 
+def test_glare_streaks_are_modelled_per_station_and_leave_no_heading_bias(printed, tmp_path, monkeypatch):
+    """Glossy beads on a flatbed lit from one side (issue #10 item 7): a specular streak on
+    the flank facing the lamp read those headings up to +12 um wide, and the prime line,
+    which faces it all along, set the scan's offset from them. With the streak modelled,
+    the apparent widths no longer depend on heading, and the offset from a reference in
+    glare is a bracket whose sd holds the glare-free render's offset."""
+    from calib.commands.simulate import simulate_scan
+    from measure import widths as mw
+    from measure.pipeline import measure_scan
+    from patterns.manifest import sample_points
+
+    man, spec, values, _ = printed
+    smp = sample_points(man)
+    facing = np.abs(smp.ny) > 0.94          # normals within 20 deg of the lamp's axis (y)
+    away = np.abs(smp.ny) < 0.5
+
+    def measured(realism, tag):
+        r, _ = simulate_scan(man, spec, values, "flatbed", profile=man.printer, dpi=600.0, seed=5,
+                             realism=realism, clutter=False)
+        path = tmp_path / f"{tag}.png"
+        cv2.imwrite(str(path), r.image)
+        res = measure_scan(path, man)
+        cal = res.summary["apparent_width"]
+        ok = res.table.valid & (r.table.width_mm > 0)
+        raw = res.table.width_mm - r.table.width_mm + cal["offset_mm"]     # apparent - physical
+        return cal, np.mean(raw[ok & facing]) - np.mean(raw[ok & away]), res
+
+    clean, _, _ = measured("profile", "clean")
+    cal, heading, res = measured("profile,glare", "glare")
+    assert res.measurement.glare_streak[facing & res.table.valid].mean() > 0.5
+    assert res.measurement.glare_streak[away & res.table.valid].mean() < 0.1
+    assert abs(heading) < 0.003
+    assert cal["applied"] and cal["glare_bracket_mm"] is not None and cal["offset_sd_mm"] < 0.008
+    assert abs(cal["offset_mm"] - clean["offset_mm"]) < 2 * cal["offset_sd_mm"]
+    monkeypatch.setattr(mw, "STREAK_F", np.inf)                            # the plain edge pair
+    _, heading_plain, _ = measured("profile,glare", "plain")
+    assert heading_plain > 0.006
+
+
 def test_simulate_cli_rejects_unknown_phenomenon(tmp_path, capsys):
     gcode = tmp_path / "p.gcode"
     assert main(["pattern", "spiral-step", "--printer", "direct_drive", "--speeds", "20", "--step-s", "1",
