@@ -36,6 +36,7 @@ from scipy.special import logsumexp
 from calib.errors import UserError
 from calib.progress import progress as progress_bar
 from fit.likelihood import CORR_NAME, SIGMA_NAME, JointProblem, NoiseOptions
+from fit.result import WOBBLE_REL_MAX
 from fit.modes import distinct_modes, global_starts, physical_mask
 from fit.result import FitResult, MapResult, ParamSummary
 
@@ -231,11 +232,16 @@ def _map_result(problem, theta, cov, res, n_ok, label) -> MapResult:
                   if not (n.startswith(SIGMA_NAME) or n.startswith(CORR_NAME)))
     n = problem.n_obs
     n_valid = len(resid)          # chi2_nu and RMS: valid samples (missing ones have no residual)
+    # the bead's own wobble, allowed up to WOBBLE_REL_MAX of the width (fit/result.py)
+    allow = np.concatenate([np.full(len(sc.y_mm), min(float(theta[i_sig]), WOBBLE_REL_MAX * float(
+        np.median(np.abs(sc.y_mm))) if len(sc.y_mm) else 0.0)) for sc, (i_sig, _) in zip(problem.scans,
+                                                                                          problem.noise_index)])
     return MapResult(model=label, param_names=list(problem.param_names), theta=theta, cov=cov,
                      log_post=float(lp[0]), loglik=float(ll[0].sum()), pointwise=ll[0],
                      n_obs=n, k=problem.ndim, k_model=k_model,
                      rms_mm=float(np.sqrt(np.mean(resid ** 2))),
                      chi2_nu=float(np.sum((resid / sd) ** 2) / max(1, n_valid - k_model)),
+                     chi2_nu_bead=float(np.sum(resid ** 2 / (sd ** 2 + allow ** 2)) / max(1, n_valid - k_model)),
                      n_missing=int(getattr(problem, "n_missing", 0)),
                      success=bool(getattr(res, "success", True)), n_starts=n_ok,
                      message=str(getattr(res, "message", "")))

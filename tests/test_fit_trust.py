@@ -120,3 +120,39 @@ def test_verdict_rules():
     assert assess(_doc(modes=[best, far_worse])).trustworthy
     assert assess(_doc(modes=[best, inside])).trustworthy
     assert not assess(_doc(modes=[best, close])).trustworthy
+
+
+def _wobbly_line(missing_um, seed=0):
+    """A bead 0.6 mm wide whose own width wanders by 1.2 % (OU, 20 mm), measured with a
+    2 um sd; plus, if asked, an effect the line model lacks (a 60 mm-period ripple)."""
+    from fit.likelihood import JointProblem, NoiseOptions
+    from test_discover_compare import LineModel
+
+    rng = np.random.default_rng(seed)
+    x = np.arange(0.0, 400.0, 0.25)
+    phi = math.exp(-0.25 / 20.0)
+    ou = np.zeros(len(x))
+    ou[0] = rng.standard_normal()
+    for i in range(1, len(x)):
+        ou[i] = phi * ou[i - 1] + math.sqrt(1 - phi * phi) * rng.standard_normal()
+    y = (0.6 + 1e-4 * x + 0.012 * 0.6 * ou + 1e-3 * missing_um * np.sin(2 * np.pi * x / 60.0)
+         + 0.002 * rng.standard_normal(len(x)))
+    return JointProblem([_scan(x, y, 0.002)], [LineModel()], NoiseOptions())
+
+
+def test_the_beads_own_wobble_is_not_a_misfit_but_a_missing_effect_still_is():
+    """Realistic renders (issue #11): the right model had chi2_nu 5.4 against the measurement
+    sd alone, because a real bead wanders; chi2_nu_bead allows that wobble up to 2 % of the
+    width, so the right model passes and a missing 40 um ripple does not."""
+    for seed in range(3):
+        right = fit_map(_wobbly_line(0.0, seed), seed=seed)
+        assert right.chi2_nu > 4 * CHI2_NU_MAX                 # the old statistic called it a misfit
+        assert right.chi2_nu_bead < CHI2_NU_MAX
+        doc = {"converged": True, "information": {"chi2_nu": right.chi2_nu, "chi2_nu_bead": right.chi2_nu_bead,
+                                                  "rms_mm": right.rms_mm, "n_obs": right.n_obs},
+               "params": {}, "priors": {}}
+        assert assess(doc).trustworthy
+        wrong = fit_map(_wobbly_line(40.0, seed), seed=seed)
+        assert wrong.chi2_nu_bead > CHI2_NU_MAX
+        doc["information"].update(chi2_nu=wrong.chi2_nu, chi2_nu_bead=wrong.chi2_nu_bead)
+        assert not assess(doc).trustworthy
