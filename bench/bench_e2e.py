@@ -16,7 +16,9 @@ back-pressure truth, default the same: its fits take ~5 min each; 2 processes):
   4.7 points). A seed whose picture cannot be measured or whose fit fails counts as a miss;
 - the same for plain `pa` (no target: it shows why `spread` is in the model: the bead
   smooths its own width beyond the nozzle window and `pa` alone reads tau high);
-- median |tau error| and median width RMS / bias of the measurement against the truth.
+- median |tau error| and median width RMS / bias of the measurement against the truth;
+- how many of the fits that miss the truth the trust verdict (fit/trust.py, as `calib fit`
+  prints it) still calls trustworthy: the confident wrong numbers, and how many it trusts.
 """
 from __future__ import annotations
 
@@ -78,7 +80,8 @@ def measured_scan(spec: str, seed: int, realism: str = "all"):
 
 def _one(job):
     from fit.model import build_model
-    from fit.sampler import fit_mcmc
+    from fit.sampler import fit_mcmc, make_problem
+    from fit.trust import assess, residual_structure
     from patterns.profile import load_profile
 
     spec, seed = job
@@ -94,11 +97,16 @@ def _one(job):
     prof = load_profile(PROFILE)
     for m in models:
         try:
-            r = fit_mcmc(build_model(m, prof), sc, seed=seed, progress=False, n_loo_draws=50)
+            pb = make_problem(build_model(m, prof), sc)
+            r = fit_mcmc(pb, seed=seed, progress=False, n_loo_draws=50)
+            # the verdict `calib fit` would print (fit/trust.py): is a miss flagged?
+            r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
+            v = assess(r.to_json())
         except Exception as exc:
             out["fits"][m] = {"error": str(exc)}
             continue
-        out["fits"][m] = {"converged": bool(r.converged),
+        out["fits"][m] = {"converged": bool(r.converged), "trustworthy": bool(v.trustworthy),
+                          "chi2_nu_bead": float(r.map.chi2_nu_bead),
                           **{n: (r.params[n].median, *r.params[n].ci90) for n in values}}
     out["time_s"] = time.perf_counter() - t0
     return out
@@ -115,7 +123,9 @@ def _run(jobs, workers):
             res.append(r)
             fits = "; ".join(
                 f"{m}: " + (f["error"][:60] if "error" in f else ", ".join(
-                    f"{n.split('.')[-1]} {v[0]:.4g} [{v[1]:.4g}, {v[2]:.4g}]" for n, v in f.items() if n != "converged"))
+                    f"{n.split('.')[-1]} {v[0]:.4g} [{v[1]:.4g}, {v[2]:.4g}]" for n, v in f.items()
+                    if isinstance(v, tuple)) + f" (chi2_nu_bead {f['chi2_nu_bead']:.2f}, "
+                    + ("trusted)" if f["trustworthy"] else "NOT TRUSTWORTHY)"))
                 for m, f in r["fits"].items()) or r.get("error", "")
             _log(f"{i + 1}/{len(jobs)} {r['spec']} seed {r['seed']} ({time.perf_counter() - t0:.0f} s) {fits}")
     return res
@@ -151,6 +161,13 @@ def run() -> list[Row]:
                                        f"({len(good)} fitted, {conv} converged)", 100 * cov, "%", target,
                                 None if m == "pa" else bool(0.80 <= cov <= 0.97)))
             if good:
+                # "never a confident wrong number": a fit whose 90 % interval misses the truth
+                # on any parameter should have been called not trustworthy
+                miss = [f for f in good if any(not f[n][1] <= t <= f[n][2] for n, t in values.items())]
+                quiet = sum(f["trustworthy"] for f in miss)
+                rows.append(Row("e2e", f"truth {spec}, fit {m}: misses (90 % interval) the verdict let through "
+                                       f"of {len(miss)}; fits trusted {sum(f['trustworthy'] for f in good)}/{len(good)}",
+                                float(quiet), "fits", "-", None))
                 err = [abs(f["pa.tau_s"][0] / values["pa.tau_s"] - 1) for f in good]
                 rows.append(Row("e2e", f"truth {spec}, fit {m}: median |tau error|", 100 * float(np.median(err)),
                                 "%", "-", None))
