@@ -105,6 +105,8 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "valid": int(ok.sum()),
         "fraction_valid": valid_frac,
         "flags": dict(sorted(flags.items())),
+        # valid stations whose edge pair carries a glare streak on one flank (measure/edges.py)
+        "glare_streak_stations": int(meas.glare_streak[ok].sum()) if meas.glare_streak is not None else 0,
         "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
         "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
         "blur_plane_px": [float(v) for v in meas.blur_plane_px],
@@ -149,11 +151,10 @@ def _resolution_px_per_mm(reg, table) -> float:
     return float(np.median(reg.px_per_mm(xy[:: max(1, len(xy) // 500)])))
 
 
-def apparent_width_calibration(gray, color, manifest, reg, blur_plane_px=None):
+def apparent_width_calibration(gray, color, manifest, reg):
     """measure/calibrate.py on the print's width-reference prime line, measured like the
-    test tracks (with their blur plane ``blur_plane_px`` when given: a line at one heading
-    can be in glare all along, and the blur is read on streak-free beads); an unapplied
-    WidthCalibration saying why when the print has none."""
+    test tracks (a reference in glare gets a bracketed offset, measure/calibrate.py); an
+    unapplied WidthCalibration saying why when the print has none."""
     from measure.calibrate import WidthCalibration, calibrate, reference_stations
 
     ref = reference_stations(manifest)
@@ -161,7 +162,7 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_plane_px=None):
         return WidthCalibration(note="no apparent-width calibration: the print has no width-reference prime "
                                      "line (third-party G-code?); widths are apparent widths")
     smp, section = ref
-    m = measure_widths(gray, smp, reg, manifest=manifest, color=color, blur_plane_px=blur_plane_px)
+    m = measure_widths(gray, smp, reg, manifest=manifest, color=color)
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
     ok = m.table.valid
     in_glare = bool(ok.any()) and m.glare_streak[ok].mean() > GLARE_REFERENCE_SHARE

@@ -17,7 +17,8 @@ width_sd_mm, bench/bench_measure.py), plus ``SD_FLOOR_PX`` in quadrature (edge m
 Glare: where a specular streak brightens one flank (measure/edges.py :func:`fit_streak`),
 the edge pair is refitted with the streak on either side and the better of the two replaces
 the plain fit when it explains significantly more: F = [(RSS_plain - RSS_streak) / 2] /
-[RSS_streak / (M - 7)] > ``STREAK_F``. Such stations stay valid (``glare_streak`` says which).
+[RSS_streak / (M - 7)] > ``STREAK_F``, and the streaks' sides agree with one light over the
+scan (``STREAK_COHERENCE``). Such stations stay valid (``glare_streak`` says which).
 
 Stations are flagged, never silently used (valid = 0 and a reason): ``edge`` (profile leaves
 the image), ``crossing`` / ``neighbour`` (another track touches the bead or sits inside
@@ -95,8 +96,7 @@ def widths(image, manifest_or_samples, registration, *, manifest: Manifest | Non
 
 
 def measure_widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
-                   color=None, ds_mm: float = 0.25, fix_blur: bool = True,
-                   blur_plane_px: tuple | None = None) -> WidthMeasurement:
+                   color=None, ds_mm: float = 0.25, fix_blur: bool = True) -> WidthMeasurement:
     """Measure the bead width at every station.
 
     image                gray float (H, W), 0..1
@@ -104,8 +104,6 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     registration         measure.register.Registration of this image
     manifest             the manifest, for the neighbour/label flags, when Samples are given
     color                uint8 (H, W, 3) image for glare detection (saturation in any channel)
-    blur_plane_px        (a, b, c) of the blur s_px = a + b u + c v learnt on another set of
-                         stations of this image (the optics are the same): skips learning it here
     """
     if isinstance(manifest_or_samples, Manifest):
         manifest = manifest_or_samples
@@ -155,18 +153,14 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     pol = float(getattr(registration, "polarity", 1.0))
     s0 = 1.0 / np.maximum(ppm_n, 1e-9)
     p0 = edges.initial_guess(t, y, pol, s0)
-    if blur_plane_px:
-        plane = np.asarray(blur_plane_px, float)
-    else:
-        plane = (_learn_blur_plane(t, y, p0, inside, flag == "", uv_c, ppm_n, np.asarray(smp.height_mm, float),
-                                   nrm) if fix_blur else None)
+    height = np.asarray(smp.height_mm, float)
+    plane = _learn_blur_plane(t, y, p0, inside, flag == "", uv_c, ppm_n, height, nrm) if fix_blur else None
     if plane is not None:
         p1 = p0.copy()
         p1[:, 5] = np.clip(plane[0] + plane[1] * uv_c[:, 0] + plane[2] * uv_c[:, 1], 0.3, None) / ppm_n
         fit = edges.fit_profiles(t, y, p1, fixed_s=True, weights=inside.astype(float))
     else:
         fit = edges.fit_profiles(t, y, p0, weights=inside.astype(float))
-    height = np.asarray(smp.height_mm, float)
     plain_w = fit.width.copy()
     fit, streak = _with_glare_streaks(t, y, fit, inside.astype(float), height, nrm)
 
