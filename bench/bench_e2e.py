@@ -80,6 +80,7 @@ def measured_scan(spec: str, seed: int, realism: str = "all"):
 
 def _one(job):
     from fit.model import build_model
+    from fit.nuisance import nuisance_check
     from fit.sampler import fit_mcmc, make_problem
     from fit.trust import assess, residual_structure
     from patterns.profile import load_profile
@@ -101,6 +102,9 @@ def _one(job):
             r = fit_mcmc(pb, seed=seed, progress=False, n_loo_draws=50)
             # the verdict `calib fit` would print (fit/trust.py): is a miss flagged?
             r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
+            r.diagnostics["nuisance"] = nuisance_check(
+                lambda spec: make_problem(build_model(spec, prof), sc), m, r.map.values, r.map.bic,
+                {n: p.ci95 for n, p in r.params.items()}, seed=seed)
             v = assess(r.to_json())
         except Exception as exc:
             out["fits"][m] = {"error": str(exc)}

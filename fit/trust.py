@@ -28,6 +28,10 @@ Problems
   measurement sd is optimistic: `pa` fitted to a bead back-pressure truth gave tau 0.119 s,
   95 % [0.112, 0.126], truth 0.043 s, at chi2_nu 1.42, with accel_mm_s2 scoring 0.13-0.16
   (p 0.005); well-specified fits score <= 0.03 (bench/bench_trust.py).
+- ``nuisance``: an effect every printed bead has and the model lacks (fit/nuisance.py:
+  ``spread``) is decisively in the data (Delta BIC >= 10) and moves a physical value
+  outside its 95 % interval: the number is biased by what the model leaves out, though
+  nothing else shows it (on realistic renders `pa` read tau 4 % high at chi2_nu_bead ~1).
 - ``at a bound``: the 95 % interval of a physical parameter reaches within
   ``BOUND_FRACTION`` (2 %) of the prior range (in log units for positive parameters) of
   a bound that is a range limit, not the "effect absent" value 0: the data want a value
@@ -45,6 +49,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+
+from fit.nuisance import DECISIVE_BIC
 
 CHI2_NU_MAX = 2.0
 BOUND_FRACTION = 0.02
@@ -128,6 +134,14 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
         problems.append(f"the residuals follow {rs['covariate']} ({100 * rs['score']:.0f} % of their "
                         f"variance beyond chance, p = {rs['p_value']:.2g}): an effect the model lacks "
                         f"depends on it, and it biases the values")
+    nuisance = [c for c in (diag.get("nuisance") or [])
+                if c.get("delta_bic", 0) >= DECISIVE_BIC and c.get("moved")]
+    for c in nuisance:
+        moved = ", ".join(f"{n} from {a:.4g} to {b:.4g}" for n, (a, b) in c["moved"].items())
+        problems.append(f"`{c['effect']}`, which printed beads have and the model lacks, is in the data "
+                        f"(BIC {c['delta_bic']:.0f} better) and moves {moved}, outside the 95 % interval: "
+                        f"fit `{c['model']}`")
+    checks["nuisance"] = nuisance
     at_bound = []
     for name, p in params.items():
         if _is_noise(name) or name not in priors:
@@ -170,7 +184,9 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
     # widths that are apparent widths (fit/measurement.py): worth reading, not blocking
     cautions += list((doc.get("diagnostics") or {}).get("measurement", {}).get("notes", []))
 
-    if any("does not fit" in p for p in problems) or structured:
+    if nuisance and not (any("does not fit" in p for p in problems) or structured):
+        advice = f"fit `{nuisance[0]['model']}` instead (`calib fit ... --model {nuisance[0]['model']}`)"
+    elif any("does not fit" in p for p in problems) or structured:
         advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
                   "missing effect, then fit the model it names")
     elif at_bound:

@@ -133,6 +133,12 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     from fit.trust import assess, residual_structure
 
     res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
+    if len(data.scans) == 1:    # a joint fit's per-scan parameters make the refit ambiguous; skipped
+        from fit.nuisance import nuisance_check
+
+        res.diagnostics["nuisance"] = nuisance_check(
+            lambda spec: make_problem(spec, data, noise, {**cal, **user} or None, extra), model_spec,
+            res.map.values, res.map.bic, {n: p.ci95 for n, p in res.params.items()}, seed=seed)
     res.diagnostics["measurement"] = {"scans": states, "notes": meas_notes,
                                       "scan_bias_priors": cal}
     res.diagnostics["missing_stations"] = missing_info(problem)

@@ -1,0 +1,49 @@
+"""The nuisance check (fit/nuisance.py): a fit without the bead's own along-track
+smoothing (`spread`) is called untrustworthy when the data decisively hold it and it moves
+the value; a fit of a bead that does not spread is left alone."""
+import numpy as np
+import pytest
+
+from fit.data import scan_from_table
+from fit.model import build_model
+from fit.nuisance import DECISIVE_BIC, nuisance_check
+from fit.sampler import fit_map, make_problem
+from fit.trust import assess
+from fit.virtual import print_virtual
+from patterns import spiral_step
+from patterns.profile import load_profile
+
+PROF = load_profile("direct_drive")
+
+
+def _scan(spec, values, seed):
+    _, man = spiral_step.generate(PROF, speeds_mm_s=(20.0,), n_steps=6, step_s=(3.0,), widths_mm=(0.35, 0.8))
+    man = man.cut_to_test_tracks(pad_s=5.0)
+    t = print_virtual(man, build_model(spec, PROF), values).table
+    rng = np.random.default_rng(seed)
+    t.width_mm = t.width_mm + rng.normal(0.0, 0.002, len(t.width_mm))
+    t.width_sd_mm[:] = 0.002
+    return scan_from_table(t, man, f"s{seed}")
+
+
+def _check(sc, seed):
+    pb = make_problem(build_model("pa", PROF), sc)
+    m = fit_map(pb, seed=seed, global_search=True)
+    sd = np.sqrt(np.diag(m.cov))
+    ci95 = {n: (v - 1.96 * s, v + 1.96 * s) for n, v, s in zip(m.param_names, m.theta, sd)}
+    return nuisance_check(lambda spec: make_problem(build_model(spec, PROF), sc), "pa", m.values, m.bic, ci95,
+                          seed=seed)[0]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_spreading_bead_makes_pa_alone_untrustworthy_and_a_plain_one_does_not(seed):
+    spread = _check(_scan("pa+spread", {"pa.tau_s": 0.043, "spread.sigma_mm": 0.3}, seed), seed)
+    assert spread["model"] == "pa+spread" and spread["delta_bic"] >= DECISIVE_BIC and "pa.tau_s" in spread["moved"]
+    doc = {"converged": True, "information": {"chi2_nu": 1.0, "chi2_nu_bead": 1.0, "n_obs": 1000},
+           "params": {}, "priors": {}, "diagnostics": {"nuisance": [spread]}}
+    v = assess(doc)
+    assert not v.trustworthy and "pa+spread" in v.problems[0] and "pa+spread" in v.advice
+    plain = _check(_scan("pa", {"pa.tau_s": 0.043}, seed), seed)
+    assert plain["delta_bic"] < DECISIVE_BIC or not plain["moved"]
+    doc["diagnostics"]["nuisance"] = [plain]
+    assert assess(doc).trustworthy
