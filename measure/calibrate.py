@@ -28,7 +28,7 @@ lets it masquerade as back-pressure.
 Glare: a reference line that faces the light has a specular streak along one flank on
 every station (measure/edges.py). The plain edge pair reads such a bead wide, the edge pair
 with the streak, whose depth on the flank is then at its bound, reads it narrow: on 600 dpi
-flatbed renders the offset came out -25 / -36 um (truth -34) on one print and -24 / -42
+flatbed renders the offset came out -25 / -36 um (truth -34) on one print and -31 / -42
 (truth -29) on another, the intercept b0 amplifying the 0.4 mm sections' error by w_max /
 (w_max - w_min). When most reference stations carry a streak, both are computed and the
 offset is their midpoint, with half their difference added to its sd in quadrature: a
@@ -131,9 +131,10 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
     height_mm: the reference's layer height; plain_width_mm: the plain edge pair's widths
-    when the reference is in glare (module docstring: the offset is then bracketed). A flow factor g scales the bead's area, so
-    the physical width is g w + (1 - g) h (1 - pi/4) (fit/geometry.py rounded rectangle):
-    that small (1 - g) term is taken out of the intercept before it is called b0.
+    when the reference is in glare (module docstring: the offset is then bracketed). A flow
+    factor g scales the bead's area, so the physical width is g w + (1 - g) h (1 - pi/4)
+    (fit/geometry.py rounded rectangle): that small (1 - g) term is taken out of the
+    intercept before it is called b0.
     """
     cal = WidthCalibration()
     rows = []
