@@ -67,8 +67,8 @@ RIGHT_COVARIATES = {
     "thermal": {"time_since_stop_s", "last_stop_duration_s"},
     "nonlinear": {"flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"},
     "backpressure": {"width_nominal_mm", "flow_mm3_s"},
-    "backlash": {"time_since_stop_s", "s_mm", "time_since_flow_change_s"},
-    "bed": {"x_mm", "y_mm"},
+    "backlash": {"time_since_stop_s", "s_mm", "time_since_flow_change_s", "time_since_retract_s"},
+    "bed": {"x_mm", "y_mm", "r_mm"},
     "gear_slip": {"flow_mm3_s", "extruder_speed_mm_s"},
 }
 

@@ -28,6 +28,8 @@ COVARIATES: dict[str, tuple[str, str]] = {
     "time_since_stop_s": ("s", "time since the head last stood still or the extruder last "
                           "stopped/retracted"),
     "last_stop_duration_s": ("s", "how long that last stop lasted"),
+    "time_since_retract_s": ("s", "time since the extruder last ran backwards (a retraction): "
+                             "play in the drive is taken up after each reversal"),
     "flow_mm3_s": ("mm^3/s", "commanded volumetric flow"),
     "extruder_speed_mm_s": ("mm/s", "commanded extruder (filament) speed"),
     "speed_mm_s": ("mm/s", "head XY speed"),
@@ -36,10 +38,16 @@ COVARIATES: dict[str, tuple[str, str]] = {
     "heading_rad": ("rad", "direction of travel, atan2(dy, dx)"),
     "x_mm": ("mm", "bed x"),
     "y_mm": ("mm", "bed y"),
+    "r_mm": ("mm", "distance from the centre of the printed area (a bowl- or dome-shaped bed)"),
     "e_mm": ("mm", "cumulative commanded filament"),
     "s_mm": ("mm", "distance along the track from its start"),
     "t_s": ("s", "print time"),
 }
+
+#: A covariate constant over runs of at least this many samples on average (e.g. how
+#: long the last stop lasted: one value from one stop to the next) labels those runs:
+#: its null reassigns its values among the runs (see score_covariates).
+RUN_MIN_SAMPLES = 20
 
 #: Default covariate groups that describe the same physics: a score on any member points
 #: to the same cause (used by the benchmark to judge "the right covariate").
@@ -133,6 +141,7 @@ def compute_covariates(manifest: Manifest, track, s_mm, t_s=None, x_mm=None, y_m
 
     stopped = (tl.v_mm_s < stop_speed_mm_s) | (tl.ve_mm_s <= 0)
     last_stop, stop_len = _last_true_and_run_length(stopped, tl.t_s)
+    last_retract, _ = _last_true_and_run_length(tl.ve_mm_s < 0, tl.t_s)
 
     accel = np.gradient(tl.v_mm_s, tl.t_s) if len(tl) > 1 else np.zeros(len(tl))
     heading = _heading(manifest, track, s_mm)
@@ -148,18 +157,28 @@ def compute_covariates(manifest: Manifest, track, s_mm, t_s=None, x_mm=None, y_m
             width_nom[m] = np.nan
 
     ls = last_stop[k]
+    lr = last_retract[k]
+    x_mm = np.asarray(x_mm, dtype=float)
+    y_mm = np.asarray(y_mm, dtype=float)
+    # the centre of the printed area: a warped bed is a bowl or dome about the bed's
+    # centre, and patterns are printed centred on the bed
+    ext = np.isfinite(x_mm) & np.isfinite(y_mm)
+    cx = 0.5 * (np.min(x_mm[ext]) + np.max(x_mm[ext])) if ext.any() else 0.0
+    cy = 0.5 * (np.min(y_mm[ext]) + np.max(y_mm[ext])) if ext.any() else 0.0
     vals = {
         "time_since_flow_change_s": t_s - t_change,
         "time_since_stop_s": np.where(ls >= 0, t_s - tl.t_s[np.maximum(ls, 0)], t_s - tl.t_s[0]),
         "last_stop_duration_s": np.where(ls >= 0, stop_len[np.maximum(ls, 0)], 0.0),
+        "time_since_retract_s": np.where(lr >= 0, t_s - tl.t_s[np.maximum(lr, 0)], t_s - tl.t_s[0]),
         "flow_mm3_s": q[k],
         "extruder_speed_mm_s": tl.ve_mm_s[k],
         "speed_mm_s": tl.v_mm_s[k],
         "accel_mm_s2": accel[k],
         "width_nominal_mm": width_nom,
         "heading_rad": heading,
-        "x_mm": np.asarray(x_mm, dtype=float),
-        "y_mm": np.asarray(y_mm, dtype=float),
+        "x_mm": x_mm,
+        "y_mm": y_mm,
+        "r_mm": np.hypot(x_mm - cx, y_mm - cy),
         "e_mm": tl.e_mm[k],
         "s_mm": s_mm,
         "t_s": t_s,
@@ -188,7 +207,10 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
     reassigns the per-track values among the tracks at random (the residuals stay as they
     are), so it scores only by how it *groups* the tracks beyond what any labelling of
     them does; with one value per track it cannot score at all, which is the truth: such
-    a test cannot tell that covariate from any other property of the lines.
+    a test cannot tell that covariate from any other property of the lines. The same
+    holds for a covariate constant between stops (how long the last stop lasted): it
+    labels the runs of the print between stops, and its null reassigns its values among
+    those runs (at most one run per RUN_MIN_SAMPLES samples on average).
     """
     r = np.asarray(resid, dtype=float)
     ok = np.isfinite(r)
@@ -234,11 +256,29 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
 def _track_shuffles(c: np.ndarray, trk: np.ndarray, good: np.ndarray, n: int, rng):
     """If ``c`` is constant along every track (and takes >= 2 values over >= 3 tracks):
     ``n`` copies of c[good] with the per-track values reassigned among the tracks at
-    random; else None."""
+    random. Else, if ``c`` is constant over runs of the print (in print order) and has at
+    most one run per RUN_MIN_SAMPLES samples: the same with its values reassigned among
+    the runs. Else None."""
     cg, tg = c[good], trk[good]
     ids, inv = np.unique(tg, return_inverse=True)
     if len(ids) < 3:
         return None
+    out = _shuffles_over(cg, inv, n, rng)
+    if out is not None:
+        return out
+    # runs: a new run where the value or the track changes
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(cg)))) if len(cg) else 0.0
+    new = np.concatenate([[True], (np.abs(np.diff(cg)) > tol) | (np.diff(tg) != 0)])
+    run = np.cumsum(new) - 1
+    if run[-1] + 1 < 3 or run[-1] + 1 > len(cg) / RUN_MIN_SAMPLES:
+        return None
+    return _shuffles_over(cg, run, n, rng)
+
+
+def _shuffles_over(cg: np.ndarray, inv: np.ndarray, n: int, rng):
+    """``n`` copies of cg with its values reassigned among the groups ``inv`` at random, if
+    cg is constant within every group and differs between them; else None."""
+    ids = np.arange(int(inv.max()) + 1)
     lo = np.full(len(ids), np.inf)
     hi = np.full(len(ids), -np.inf)
     np.minimum.at(lo, inv, cg)

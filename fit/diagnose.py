@@ -39,7 +39,7 @@ EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
     "backpressure": ("width_nominal_mm",),
     "nonlinear": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
     "bernoulli": ("flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"),
-    "backlash": ("time_since_stop_s", "time_since_flow_change_s", "e_mm"),
+    "backlash": ("time_since_retract_s", "time_since_stop_s", "time_since_flow_change_s", "e_mm"),
     "offset": ("time_since_stop_s", "flow_mm3_s"),
     "flow_gain": ("width_nominal_mm", "flow_mm3_s"),
     "bed_tilt": ("x_mm", "y_mm"),

@@ -54,11 +54,11 @@ HIDDEN: dict[str, dict[str, float]] = {
 #: The covariates that point at each hidden effect (for "the top covariate is right").
 RIGHT_COVARIATES = {
     "gear_slip": {"extruder_speed_mm_s", "flow_mm3_s"},
-    "bed_tilt": {"x_mm", "y_mm"},
+    "bed_tilt": {"x_mm", "y_mm", "r_mm"},
     "thermal": {"time_since_stop_s", "last_stop_duration_s"},
     "backpressure": {"width_nominal_mm"},
     "nonlinear": {"flow_mm3_s", "extruder_speed_mm_s", "time_since_flow_change_s"},
-    "backlash": {"time_since_stop_s", "s_mm", "time_since_flow_change_s"},
+    "backlash": {"time_since_stop_s", "s_mm", "time_since_flow_change_s", "time_since_retract_s"},
 }
 
 #: Library effects that are alternative functional forms of the same physics.

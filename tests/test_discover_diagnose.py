@@ -93,6 +93,46 @@ def test_a_per_track_covariate_is_not_a_track_label():
     assert old["label_s"].score > 0.5
 
 
+def test_a_covariate_constant_between_stops_is_scored_against_relabelled_runs():
+    """A covariate constant over runs of the print (how long the last stop lasted: one
+    value from a stop to the next) labels those runs. Residuals that differ between runs
+    for no reason it knows must not make it the cause; a run covariate whose values group
+    the runs as the residuals do still scores."""
+    from fit.covariates import Covariates
+
+    rng = np.random.default_rng(5)
+    n_tr, n_run, n_per = 6, 3, 60                 # 3 runs per track (two stops per track)
+    n = n_tr * n_run * n_per
+    track = np.repeat(np.arange(n_tr), n_run * n_per)
+    run = np.repeat(np.arange(n_tr * n_run), n_per)
+    t = np.arange(n) * 0.01
+    offset = rng.normal(0, 0.01, n_tr * n_run)               # per-run misfit, no cause
+    label = np.repeat(rng.permutation(n_tr * n_run) * 0.7 + 0.5, n_per)
+    group = np.repeat((np.arange(n_tr * n_run) % n_run == 0).astype(float), n_per)
+    resid = offset[run] + 0.04 * group + 0.003 * rng.standard_normal(n)
+    cov = Covariates({"stop_label_s": label, "group": group, "t_s": t})
+    by = {x.name: x for x in score_covariates(resid, cov, track=track, n_null=200)}
+    assert by["stop_label_s"].p_value > 0.2
+    assert by["group"].score > 0.3 and by["group"].p_value < 0.05
+    assert by["group"].score > by["stop_label_s"].score + 0.1
+    # against the cyclic-shift null alone the label looks like a cause
+    old = {x.name: x for x in score_covariates(resid, cov, n_null=200)}
+    assert old["stop_label_s"].p_value < 0.05
+
+
+def test_time_since_retract_and_distance_from_centre_on_the_probe_print():
+    """The probe retracts 1 mm at 30 mm/s after each track and travels at 150 mm/s to the
+    next one, 8 mm away, then unretracts (1/30 s): at s = 0 of track 1 the last retraction
+    ended 8/150 + 1/30 s before. Its tracks are centred on (0, 0)."""
+    c = make_case("thermal", seed=0, **FAST)
+    cov = compute_covariates(c.manifest, np.array([1]), np.array([0.0]))
+    assert cov["time_since_retract_s"][0] == pytest.approx(8.0 / 150 + 1.0 / 30, abs=0.006)
+    t = c.table
+    cov = compute_covariates(c.manifest, t.track, t.s_mm, t.t_s, t.x_mm, t.y_mm)
+    np.testing.assert_allclose(cov["r_mm"], np.hypot(t.x_mm, t.y_mm), atol=0.01)
+    assert cov["r_mm"].max() > 20.0
+
+
 def test_time_since_stop_is_hand_checkable_on_the_probe_print():
     c = make_case("thermal", seed=0, **FAST)
     tr = c.manifest.track(0)
