@@ -74,7 +74,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0
     meas = measure_widths(gray, manifest, reg, color=color)
     table = meas.table
-    cal = apparent_width_calibration(gray, color, manifest, reg)
+    cal = apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=meas.blur_plane_px)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
         table.width_mm = np.where(table.width_mm > 0, table.width_mm - cal.offset_mm, table.width_mm)
     valid_frac = float(np.mean(table.valid)) if len(table) else 0.0
@@ -151,7 +151,7 @@ def _resolution_px_per_mm(reg, table) -> float:
     return float(np.median(reg.px_per_mm(xy[:: max(1, len(xy) // 500)])))
 
 
-def apparent_width_calibration(gray, color, manifest, reg):
+def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None):
     """measure/calibrate.py on the print's width-reference prime line, measured like the
     test tracks (a reference in glare gets a bracketed offset, measure/calibrate.py); an
     unapplied WidthCalibration saying why when the print has none."""
@@ -162,7 +162,7 @@ def apparent_width_calibration(gray, color, manifest, reg):
         return WidthCalibration(note="no apparent-width calibration: the print has no width-reference prime "
                                      "line (third-party G-code?); widths are apparent widths")
     smp, section = ref
-    m = measure_widths(gray, smp, reg, manifest=manifest, color=color)
+    m = measure_widths(gray, smp, reg, manifest=manifest, color=color, blur_prior_px=blur_prior_px)
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
     ok = m.table.valid
     in_glare = bool(ok.any()) and m.glare_streak[ok].mean() > GLARE_REFERENCE_SHARE

@@ -78,3 +78,33 @@ def test_crossings_neighbours_and_fiducials_are_flagged():
     assert "fiducial" in set(tb.flag[tb.track == 22])
     clear = (tb.track == 4) & (np.abs(tb.x_mm - 50) > 3)
     assert tb.valid[clear].mean() > 0.97
+
+
+def test_blur_plane_from_stations_on_one_line_keeps_the_pictures_gradient():
+    """The prime line's wide section is one line of stations: a plane fitted to it has a
+    slope across the line that is noise. Known answer: blur = 1.0 + 4e-4 u + 8e-4 v px.
+    Stations over the picture recover the plane; stations on one line take the test
+    tracks' plane (the prior) at their own level, or their median without a prior."""
+    from measure.widths import _blur_plane
+
+    rng = np.random.default_rng(3)
+    true = np.array([1.0, 4e-4, 8e-4])
+
+    def blur(uv):
+        return true[0] + uv @ true[1:] + rng.normal(0, 0.01, len(uv))
+
+    uv2 = rng.uniform(0, 3000, (400, 2))
+    np.testing.assert_allclose(_blur_plane(uv2, blur(uv2), None, np.ones(400, bool)), true,
+                               rtol=0.05, atol=0.01)
+    # a line across the top (lens distortion bows it by a few px)
+    u = np.linspace(1200, 1800, 60)
+    uv1 = np.column_stack([u, 200 + 3e-6 * (u - 1500) ** 2])
+    b1 = blur(uv1)
+    prior = true + np.array([0.3, 0.0, 0.0])          # right gradient, level off by 0.3 px
+    got = _blur_plane(uv1, b1, None, np.ones(60, bool), prior=prior)
+    np.testing.assert_allclose(got, true, atol=0.01)
+    far = np.array([[300.0, 200.0], [2700.0, 200.0]])  # the line's ends, outside the section
+    np.testing.assert_allclose(got[0] + far @ got[1:], true[0] + far @ true[1:], atol=0.02)
+    # no prior: the section's median, flat
+    got = _blur_plane(uv1, b1, None, np.ones(60, bool))
+    assert got[1] == got[2] == 0.0 and got[0] == pytest.approx(np.median(b1))
