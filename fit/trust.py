@@ -182,10 +182,21 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
                             "mis-registered track ends")
 
     # widths that are apparent widths (fit/measurement.py): worth reading, not blocking
-    cautions += list((doc.get("diagnostics") or {}).get("measurement", {}).get("notes", []))
+    meas_notes = list((doc.get("diagnostics") or {}).get("measurement", {}).get("notes", []))
+    cautions += meas_notes
+    # ... but the first suspect when such a fit does not fit: the scan's edge offset is in
+    # every residual (on realistic renders the right model gave chi2_nu_bead 9-16 on scans
+    # whose width reference could not be calibrated)
+    no_offset = any("add scan_bias" in n for n in meas_notes)
+    spec = str(doc.get("model") or "MODEL")
+    checks["apparent_widths_without_scan_bias"] = no_offset
 
     if nuisance and not (any("does not fit" in p for p in problems) or structured):
         advice = f"fit `{nuisance[0]['model']}` instead (`calib fit ... --model {nuisance[0]['model']}`)"
+    elif no_offset and (any("does not fit" in p for p in problems) or structured):
+        advice = (f"the widths are apparent widths (their edge offset could not be calibrated) and the "
+                  f"model has no scan_bias: fit `{spec}+scan_bias` first (`calib fit ... --model "
+                  f"{spec}+scan_bias`); if that still does not fit, run `calib diagnose` with it")
     elif any("does not fit" in p for p in problems) or structured:
         advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
                   "missing effect, then fit the model it names")

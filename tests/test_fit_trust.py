@@ -122,6 +122,26 @@ def test_verdict_rules():
     assert not assess(_doc(modes=[best, close])).trustworthy
 
 
+def test_a_misfit_on_uncalibrated_widths_first_asks_for_scan_bias():
+    """Apparent widths (the width reference could not be calibrated) fitted without
+    scan_bias: the edge offset is in every residual, so the advice names `MODEL+scan_bias`
+    before `calib diagnose`; with scan_bias in the model the advice is diagnose again."""
+    from fit.measurement import notes
+
+    states = [{"scan": "scan", "calibration": {"applied": False, "note": "apparent-width calibration "
+                                                "not applied: the width reference had not settled"}}]
+    doc = _doc(chi2=12.0)
+    doc["model"] = "pa+backpressure"
+    doc["diagnostics"] = {"measurement": {"notes": notes(states, has_scan_bias=False)}}
+    v = assess(doc)
+    assert not v.trustworthy and "--model pa+backpressure+scan_bias" in v.advice
+    assert v.checks["apparent_widths_without_scan_bias"]
+    doc["diagnostics"] = {"measurement": {"notes": notes(states, has_scan_bias=True)}}
+    v = assess(doc)
+    assert "scan_bias" not in v.advice and "diagnose" in v.advice
+    assert assess(_doc(chi2=12.0)).advice.startswith("run `calib diagnose`")
+
+
 def _wobbly_line(missing_um, seed=0):
     """A bead 0.6 mm wide whose own width wanders by 1.2 % (OU, 20 mm), measured with a
     2 um sd; plus, if asked, an effect the line model lacks (a 60 mm-period ripple)."""
