@@ -33,7 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, special
 from scipy.spatial import cKDTree
 
 from measure import edges
@@ -55,6 +55,9 @@ MAX_WINDOW_WIDTH_MM = 3.0
 OUTLIER_FACTOR = 4.0
 #: A bead whose amplitude is below this fraction of the track's typical one is missing.
 MISSING_FRACTION = 0.3
+#: ... and below this fraction of the scan's typical one at its commanded width, so that a
+#: whole track that never printed is missing too (a light gradient of 40 % leaves 0.6).
+SCAN_AMPLITUDE_FRACTION = 0.5
 #: F statistic above which a glare streak replaces the plain edge pair. Streak-free renders
 #: (bead profile shaded, no glare) give F <= 27 on 300 stations, median 0.8 (99th
 #: percentile 22); the streaks that bias the plain fit by +5..+12 um give F 300-600.
@@ -173,7 +176,16 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
 
     # -- flags from the fit ---------------------------------------------------------------
     amp = pol * fit.amplitude
-    a_ref = _track_median(smp.track, amp, fit.ok & (flag == ""))
+    # A line that never printed has plate texture for its own "typical" amplitude: what a
+    # bead of its width looks like comes from the whole scan too (a never-printed line on a
+    # grained plate with logos passed 20 % of its stations as beads against its own median).
+    # A box of width w blurred by s keeps erf(w / (2 sqrt2 s)) of the full contrast A0.
+    good = fit.ok & (flag == "")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ef = special.erf(np.clip(np.nan_to_num(w_nom, nan=w_ref[0] if n else 0.4), 1e-3, None)
+                         / (2 * np.sqrt(2) * np.maximum(fit.params[:, 5], 1e-4)))
+        a0 = float(np.median(amp[good] / ef[good])) if good.any() else 0.0
+    a_ref = np.maximum(_track_median(smp.track, amp, good), SCAN_AMPLITUDE_FRACTION * a0 * ef)
     noise = fit.rms
     missing = (amp < MISSING_FRACTION * a_ref) | (amp < 3 * noise) | (w < 1.0 / ppm_n)
     if color is not None:

@@ -57,6 +57,30 @@ def test_missing_bead_is_width_zero_and_flagged():
     assert tb.valid[far].mean() > 0.95
 
 
+def test_a_track_that_never_printed_is_missing_on_a_grained_plate_with_logos():
+    """Presence the other way (issue #10 item 5): a whole test track the printer never laid
+    has plate grain and logos for its own 'typical' amplitude; its stations must still be
+    called missing (20 % of them passed as beads when the reference was the track's own)."""
+    man = scene_manifest()
+    from measure.camera import Camera
+    from measure.render import render
+    smp = sample_points(man)
+    w = smp.width_nominal_mm.copy()
+    gone = smp.track == 3
+    w[gone] = 0.0
+    truth = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                       width_mm=w, width_sd_mm=np.zeros(len(w)), valid=np.ones(len(w), bool))
+    cam = Camera.flatbed(scene_region(man), dpi=600)
+    r = render(man, truth, cam, seed=4, realism="grain,logos")
+    g = gray_of(r)
+    tb = measure_widths(g, man, register(g, man), color=r.image).table
+    assert tb.valid[gone].mean() <= 0.02
+    assert (tb.flag[gone] == "missing").mean() > 0.9
+    # ... and no printed bead is called missing for it (track 5 loses half its stations
+    # to noisy fits over a logo, with or without this rule)
+    assert (tb.flag[~gone] == "missing").mean() < 0.01 and tb.valid[~gone].mean() > 0.85
+
+
 def test_crossings_neighbours_and_fiducials_are_flagged():
     man = scene_manifest()
     # a test track crossing the others at x = 50, and one hugging track 0 with a 0.175 mm gap
