@@ -108,6 +108,8 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     registration         measure.register.Registration of this image
     manifest             the manifest, for the neighbour/label flags, when Samples are given
     color                uint8 (H, W, 3) image for glare detection (saturation in any channel)
+    blur_prior_px        (a, b, c) blur plane (px) from elsewhere in the picture, used when
+                         the stations lie on one line (the width reference: _blur_plane)
     """
     if isinstance(manifest_or_samples, Manifest):
         manifest = manifest_or_samples
@@ -182,7 +184,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     # A box of width w blurred by s keeps erf(w / (2 sqrt2 s)) of the full contrast A0.
     good = fit.ok & (flag == "")
     with np.errstate(invalid="ignore", divide="ignore"):
-        ef = special.erf(np.clip(np.nan_to_num(w_nom, nan=w_ref[0] if n else 0.4), 1e-3, None)
+        ef = special.erf(np.clip(np.where(np.isfinite(w_nom), w_nom, w_ref), 1e-3, None)
                          / (2 * np.sqrt(2) * np.maximum(fit.params[:, 5], 1e-4)))
         a0 = float(np.median(amp[good] / ef[good])) if good.any() else 0.0
     a_ref = np.maximum(_track_median(smp.track, amp, good), SCAN_AMPLITUDE_FRACTION * a0 * ef)
