@@ -60,6 +60,10 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         raise UserError("the manifest has no test tracks to measure; make it with `calib pattern` or `calib plan`")
     gray, color = load_image(image_path)
     reg = _register(gray, manifest, points)
+    # widths are measured on the channel that best tells bead from plate (grey unless a
+    # coloured bead on a grained plate separates much better in colour: measure/contrast.py)
+    from measure.contrast import bead_channel
+    gray, channel = bead_channel(gray, color, manifest, reg)
     if reg.method.startswith("auto"):
         # the automatic pose is refined once more on the bead centres it measures (ICP;
         # with stations every 1 mm instead of 0.25 mm the flatbed render's pose was 30x
@@ -110,6 +114,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
         "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
         "blur_plane_px": [float(v) for v in meas.blur_plane_px],
+        "measured_on": channel.to_dict(),
         "apparent_width": cal.to_dict(),
         "per_track": {str(t): {"valid": int((ok & (table.track == t)).sum()),
                                "samples": int((table.track == t).sum()),

@@ -132,3 +132,61 @@ def test_blur_plane_from_stations_on_one_line_keeps_the_pictures_gradient():
     # no prior: the section's median, flat
     got = _blur_plane(uv1, b1, None, np.ones(60, bool))
     assert got[1] == got[2] == 0.0 and got[0] == pytest.approx(np.median(b1))
+
+
+@pytest.mark.parametrize("seed, coloured", [(1, True), (3, False)])
+def test_a_coloured_bead_on_a_grained_light_plate_is_measured_in_colour(seed, coloured):
+    """Textured PEI's grain is nearly neutral, a coloured bead differs from the plate in hue:
+    the colour discriminant (measure/contrast.py) cuts the widths' error several-fold (seed 1:
+    a red bead, grey 17.7 um RMS); a black bead (seed 3) gains nothing and stays grey."""
+    from measure.camera import Camera
+    from measure.contrast import bead_channel
+    from measure.render import render
+    man = scene_manifest()
+    r = render(man, None, Camera.flatbed(scene_region(man), dpi=400), seed=seed, plate="light", realism="grain")
+    g = gray_of(r)
+    reg = register(g, man)
+    img, ch = bead_channel(g, r.image, man, reg)
+    assert ch.used is coloured
+
+    def rms(im):
+        tb = measure_widths(im, man, reg, color=r.image).table
+        assert tb.valid.mean() > 0.95
+        return np.sqrt(np.mean((tb.width_mm - r.table.width_mm)[tb.valid] ** 2))
+
+    if coloured:
+        grey, colour = rms(g), rms(img)
+        assert grey > 0.012 and colour < 0.4 * grey
+    else:
+        assert img is g
+
+
+def test_a_neighbours_blurred_edge_stays_out_of_the_profile():
+    """Wide beads 1.3 mm apart under a phone's blur (sigma 0.2 mm): the profile window reached
+    0.05 mm short of the neighbour, whose blurred edge lifted the background at its ends and
+    read the beads ~25 um narrow. The samples now stop 3 blur sigmas short of it."""
+    import measure.widths as mw
+    from measure.camera import Camera
+    from measure.render import render
+    man = scene_manifest(widths=(1.6,) * 4, pitch_mm=2.9)
+    cam = Camera.flatbed(scene_region(man), dpi=300)
+    r = render(man, None, cam, seed=2, blur_px=2.4, clutter=False)   # 2.4 px = 0.2 mm
+    g = gray_of(r)
+    reg = register(g, man)
+    inner = np.isin(r.table.track, (1, 2))          # a neighbour on both sides
+
+    def bias(**const):
+        old = {k: getattr(mw, k) for k in const}
+        try:
+            for k, v in const.items():
+                setattr(mw, k, v)
+            tb = measure_widths(g, man, reg, color=r.image).table
+        finally:
+            for k, v in old.items():
+                setattr(mw, k, v)
+        ok = tb.valid & inner
+        assert ok.mean() > 0.9 * inner.mean()
+        return float(np.mean(tb.width_mm[ok] - r.table.width_mm[ok]))
+
+    assert abs(bias()) < 0.004
+    assert bias(NEIGHBOUR_CLEAR_SIGMAS=0.25, MIN_CLEAR_SIGMAS=0.0) < -0.010    # the old window

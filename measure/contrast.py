@@ -1,0 +1,197 @@
+"""The image channel the widths are measured on: grey, or the colour axis that best tells bead from plate.
+
+A grey level mixes the three colour channels with fixed (luminance) weights. On a light,
+grained plate the grain is almost neutral (it varies along R = G = B) while a coloured bead
+differs from the plate mostly in hue: in grey the grain's contrast is a third to a half of
+the bead's, and on the light-plate render the widths scattered 30-60 um (sd) at 600 dpi
+where a dark plate gave 2-4 um. The linear discriminant (Fisher)
+
+    w = (S_bg + S_bead)^-1 (m_bead - m_bg)                                   (1)
+
+(m, S: mean colour and covariance of pixels on the beads and on the bare plate beside
+them) is the projection of the colour with the largest ratio of bead/plate contrast to
+the spread within each. A linear projection keeps the edge model's form (a blurred box is
+a blend of two colours, measure/edges.py), so the projected image is measured exactly
+like the grey one; it is rescaled to the grey image's bead and plate levels, so the
+polarity and the amplitude rules stay as they are.
+
+It is a candidate only when it raises the contrast-to-noise ratio |m_bead - m_bg| / sd_bg
+by more than MIN_GAIN over grey (white or grey plastic on a neutral plate gains nothing),
+and it is used only when the widths measured on it scatter less (:func:`width_noise`):
+a JPEG stores colour at half resolution (4:2:0), which blurs and rings a chroma-weighted
+image more than the grey one.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from patterns.manifest import Manifest, sample_points
+
+#: The colour projection replaces grey only above this gain in contrast-to-noise ratio.
+MIN_GAIN = 1.5
+#: ... and then only when the widths measured on it scatter this many times less.
+MIN_NOISE_GAIN = 1.25
+#: Beads at least this wide (mm, commanded) give the bead colour; narrower ones are
+#: mostly edge at a phone's blur.
+MIN_WIDTH_MM = 0.45
+#: Plate samples sit this far (mm) beyond the commanded edge; those that come within
+#: 0.3 mm of any other bead are dropped.
+PLATE_OFFSET_MM = 0.5
+
+
+@dataclass
+class Channel:
+    """What :func:`bead_channel` chose.
+
+    weights     (3,) BGR weights of the projection, None when grey was kept
+    cnr_gray    contrast-to-noise ratio of bead against plate in grey
+    cnr_color   the same for the projection (1)
+    used        whether the projection replaced grey
+    noise_*_mm, valid_*   the widths' scatter and valid fraction on either image
+                (:func:`width_noise`; only when the contrast-to-noise ratio made it a candidate)
+    """
+
+    weights: np.ndarray | None
+    cnr_gray: float
+    cnr_color: float
+    used: bool
+    noise_gray_mm: float = float("nan")
+    noise_color_mm: float = float("nan")
+    valid_gray: float = float("nan")
+    valid_color: float = float("nan")
+
+    def to_dict(self) -> dict:
+        return {"channel": "colour discriminant" if self.used else "grey",
+                "weights_bgr": None if self.weights is None else [float(v) for v in self.weights],
+                "contrast_to_noise_grey": _finite(self.cnr_gray),
+                "contrast_to_noise_colour": _finite(self.cnr_color),
+                "width_noise_um_grey": _finite(self.noise_gray_mm * 1e3),
+                "width_noise_um_colour": _finite(self.noise_color_mm * 1e3)}
+
+
+def _finite(v):
+    return float(v) if np.isfinite(v) else None
+
+
+def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float = 1.0):
+    """(image, Channel): ``gray`` itself, or the colour projection (1) rescaled to grey's
+    bead and plate levels when it separates bead from plate MIN_GAIN times better.
+
+    gray (H, W) float 0..1; color (H, W, 3) uint8 BGR; the registration maps bed mm to
+    pixels. Bead pixels: the centres of test-track stations every ``ds_mm`` (mm) of commanded
+    width >= MIN_WIDTH_MM; plate pixels: beside them on both sides (PLATE_OFFSET_MM).
+    """
+    none = Channel(None, float("nan"), float("nan"), False)
+    if color is None or color.ndim != 3 or color.shape[2] != 3:
+        return gray, none
+    smp = sample_points(manifest, ds_mm=ds_mm)
+    w = np.asarray(smp.width_nominal_mm, float)
+    keep = np.isfinite(w) & (w >= MIN_WIDTH_MM)
+    if keep.sum() < 30:
+        return gray, none
+    xy = np.column_stack([smp.x_mm, smp.y_mm])[keep]
+    nrm = np.column_stack([smp.nx, smp.ny])[keep]
+    half = w[keep, None] / 2
+    bead_xy = np.concatenate([xy, xy + 0.15 * half * nrm, xy - 0.15 * half * nrm])
+    off = half + PLATE_OFFSET_MM
+    plate_xy = np.concatenate([xy + off * nrm, xy - off * nrm])
+    plate_xy = plate_xy[_clear_of_beads(manifest, plate_xy)]
+    if len(plate_xy) < 30:
+        return gray, none
+    H, W = gray.shape
+    cf = color.astype(np.float32) / 255.0
+
+    def sample(img, pts):
+        uv = registration.project(pts)
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
+        uv = uv[ok]
+        if img.ndim == 2:
+            return ndimage.map_coordinates(img, [uv[:, 1], uv[:, 0]], order=1)
+        return np.column_stack([ndimage.map_coordinates(img[..., k], [uv[:, 1], uv[:, 0]], order=1)
+                                for k in range(img.shape[2])])
+
+    cb, cp = sample(cf, bead_xy), sample(cf, plate_xy)
+    gb, gp = sample(gray, bead_xy), sample(gray, plate_xy)
+    if len(cb) < 30 or len(cp) < 30:
+        return gray, none
+    cnr_g = _cnr(gb, gp)
+    mb, mp = np.median(cb, axis=0), np.median(cp, axis=0)
+    S = np.cov(_trim(cb).T) + np.cov(_trim(cp).T) + 1e-6 * np.eye(3)
+    wts = np.linalg.solve(S, mb - mp)
+    cnr_c = _cnr(cb @ wts, cp @ wts)
+    ch = Channel(wts, cnr_g, cnr_c, False)
+    if not cnr_c > MIN_GAIN * cnr_g:
+        return gray, ch
+    pb, pp = float(np.median(cb @ wts)), float(np.median(cp @ wts))
+    gbm, gpm = float(np.median(gb)), float(np.median(gp))
+    proj = cf @ wts.astype(np.float32)
+    img = (gpm + (proj - pp) * ((gbm - gpm) / (pb - pp))).astype(np.float32)
+    # The plate's contrast is not the edges': where the colour is stored at half
+    # resolution and coarsely (JPEG), the projection's edges are blurred and ringing, and
+    # on the dark-plate render with every phenomenon the widths scattered 18 um instead
+    # of 3. Decide on what matters: the widths' scatter between neighbouring stations.
+    ch.noise_gray_mm, ch.valid_gray = width_noise(gray, color, manifest, registration)
+    ch.noise_color_mm, ch.valid_color = width_noise(img, color, manifest, registration)
+    ch.used = bool(ch.noise_color_mm < ch.noise_gray_mm / MIN_NOISE_GAIN
+                   and ch.valid_color >= ch.valid_gray - 0.05)
+    return (img if ch.used else gray), ch
+
+
+def width_noise(img, color, manifest: Manifest, registration, ds_mm: float = 1.0) -> tuple[float, float]:
+    """(noise mm, valid fraction) of the widths measured on ``img`` at stations every
+    ``ds_mm``: the robust sd of the difference between consecutive valid stations of a
+    track over sqrt 2 (a bead's width changes in steps: the median absolute difference
+    ignores them)."""
+    from measure.widths import measure_widths
+
+    t = measure_widths(img, sample_points(manifest, ds_mm=ds_mm), registration, manifest=manifest,
+                       color=color).table
+    d = []
+    for k in np.unique(t.track):
+        q = (t.track == k) & t.valid
+        i = np.flatnonzero(q)
+        j = i[:-1][np.diff(i) == 1]
+        d.append(t.width_mm[j + 1] - t.width_mm[j])
+    d = np.concatenate(d) if d else np.zeros(0)
+    noise = 1.4826 * float(np.median(np.abs(d))) / np.sqrt(2) if len(d) >= 20 else float("nan")
+    return noise, float(np.mean(t.valid)) if len(t) else 0.0
+
+
+def _cnr(bead, plate) -> float:
+    """|median bead - median plate| / robust sd of the plate (MAD)."""
+    sd = 1.4826 * np.median(np.abs(plate - np.median(plate))) + 1e-9
+    return float(abs(np.median(bead) - np.median(plate)) / sd)
+
+
+def _trim(x, q: float = 5.0):
+    """Rows of ``x`` (N, 3) whose distance from the median lies below the (100 - q)th
+    percentile: a string, logo or misregistered sample does not set the covariance."""
+    d = np.linalg.norm(x - np.median(x, axis=0), axis=1)
+    return x[d <= np.percentile(d, 100 - q)]
+
+
+def _clear_of_beads(manifest: Manifest, pts, clearance_mm: float = 0.3) -> np.ndarray:
+    """True where ``pts`` (mm) lie at least ``clearance_mm`` beyond every track's commanded edge."""
+    from scipy.spatial import cKDTree
+
+    P, hw = [], []
+    for tr in manifest.tracks:
+        if tr.length_mm <= 0:
+            continue
+        ss = np.arange(0.0, tr.length_mm + 1e-9, 0.1)
+        wv = tr.interp("width_mm", ss)
+        on = wv > 0
+        P.append(tr.at(ss[on])[0])
+        hw.append(np.minimum(wv[on], 3.0) / 2)
+    if not P:
+        return np.ones(len(pts), bool)
+    P, hw = np.vstack(P), np.concatenate(hw)
+    tree = cKDTree(P)
+    ok = np.ones(len(pts), bool)
+    for i, nb in enumerate(tree.query_ball_point(pts, float(hw.max()) + clearance_mm)):
+        if nb and np.any(np.hypot(*(P[nb] - pts[i]).T) < hw[nb] + clearance_mm):
+            ok[i] = False
+    return ok
