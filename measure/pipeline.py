@@ -78,7 +78,8 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0
     meas = measure_widths(gray, manifest, reg, color=color)
     table = meas.table
-    cal = apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=meas.blur_plane_px)
+    cal = apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=meas.blur_plane_px,
+                                     test_measurement=meas)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
         table.width_mm = np.where(table.width_mm > 0, table.width_mm - cal.offset_mm, table.width_mm)
     valid_frac = float(np.mean(table.valid)) if len(table) else 0.0
@@ -156,11 +157,13 @@ def _resolution_px_per_mm(reg, table) -> float:
     return float(np.median(reg.px_per_mm(xy[:: max(1, len(xy) // 500)])))
 
 
-def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None):
+def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, test_measurement=None):
     """measure/calibrate.py on the print's width-reference prime line, measured like the
-    test tracks (a reference in glare gets a bracketed offset, measure/calibrate.py); an
-    unapplied WidthCalibration saying why when the print has none."""
-    from measure.calibrate import WidthCalibration, calibrate, reference_stations
+    test tracks (a reference in glare gets a bracketed offset unless ``test_measurement``,
+    the test tracks' WidthMeasurement, vouches for the streak model: measure/calibrate.py);
+    an unapplied WidthCalibration saying why when the print has none."""
+    from measure.calibrate import WidthCalibration, calibrate, reference_stations, streak_consistency
+    from patterns.manifest import sample_points
 
     ref = reference_stations(manifest)
     if ref is None:
@@ -171,8 +174,15 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None):
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
     ok = m.table.valid
     in_glare = bool(ok.any()) and m.glare_streak[ok].mean() > GLARE_REFERENCE_SHARE
+    check = None
+    tm = test_measurement
+    if in_glare and tm is not None and tm.glare_streak is not None:
+        nominal = sample_points(manifest).width_nominal_mm
+        if len(nominal) == len(tm.table):
+            t = tm.table
+            check = streak_consistency(t.track, nominal, t.width_mm, tm.plain_width_mm, tm.glare_streak, t.valid)
     return calibrate(m.table.width_mm, ok, smp.width_nominal_mm, section, height_mm=h,
-                     plain_width_mm=m.plain_width_mm if in_glare else None)
+                     plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check)
 
 
 def _register(gray, manifest, points) -> Registration:

@@ -46,6 +46,33 @@ def test_calibration_warns_when_a_section_has_not_settled():
     assert not cal.applied and "not applied" in cal.note
 
 
+def test_a_reference_in_glare_takes_the_streak_model_only_when_the_test_tracks_vouch_for_it():
+    """Reference in glare: the streak model reads it -46 um (truth), the plain edge pair 10 um
+    wide. Without evidence the offset is the bracket's middle with half its span in the sd;
+    when the test tracks' glare stations, fitted with the streak, read like their glare-free
+    peers (streak_consistency), the streak-modelled offset is used."""
+    from measure.calibrate import streak_consistency
+    w, v, nom, sec = _stations(1.0, -0.046)
+    plain = w + 0.010
+    mid = calibrate(w, v, nom, sec, plain_width_mm=plain)
+    assert abs(mid.offset_mm + 0.041) < 0.001 and mid.offset_sd_mm > 0.005
+    # test tracks: two tracks x two widths, a third of the stations in glare
+    rng = np.random.default_rng(3)
+    track = np.repeat([0, 1], 200)
+    nominal = np.tile(np.repeat([0.5, 1.0], 100), 2)
+    streak = rng.uniform(size=400) < 0.33
+    true = nominal - 0.046 + rng.normal(0, 0.002, 400)
+    for d_model, vouched in ((0.0005, True), (0.012, False)):
+        width = true + streak * d_model
+        check = streak_consistency(track, nominal, width, width + streak * 0.010, streak, np.ones(400, bool))
+        assert check[2] == 4 and abs(check[0] - d_model) < 0.001 and abs(check[1] - d_model - 0.010) < 0.001
+        cal = calibrate(w, v, nom, sec, plain_width_mm=plain, streak_check=check)
+        if vouched:
+            assert abs(cal.offset_mm + 0.046) < 0.001 and cal.offset_sd_mm < 0.002
+        else:
+            assert cal.offset_mm == pytest.approx(mid.offset_mm) and cal.offset_sd_mm == pytest.approx(mid.offset_sd_mm)
+
+
 # -- phenomena ----------------------------------------------------------------------------
 def test_realism_names():
     assert Realism.parse("default", "phone").enabled == frozenset(PHENOMENA)
