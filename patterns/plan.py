@@ -35,6 +35,11 @@ from patterns.profile import load_profile
 
 #: Unlabelled extrusion runs shorter than this (mm) are kind "other" (text, dots, blobs).
 MIN_TEST_LENGTH_MM = 3.0
+#: A track turning by more than this (deg, in total) within a box of this diagonal (mm) is
+#: a label's stroke, and so is a small track this close (mm) to one (_label_strokes).
+TEXT_TURN_DEG = 150.0
+TEXT_BOX_MM = 6.0
+TEXT_NEAR_MM = 2.0
 
 
 def manifest_from_gcode(text, profile, pattern: dict | None = None, *,
@@ -220,8 +225,11 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
     ids / z_range_mm: only these track ids / tracks whose z lies in [lo, hi] (mm) are tests.
     auto_exclude (G-code without our labels): the first extruding track when it runs
     within ``bed_margin_mm`` of the bed edge is the prime line; closed loops (start and end
-    within 1 mm, longer than 10 mm: skirts, dial rings, perimeters) are "other"."""
+    within 1 mm, longer than 10 mm: skirts, dial rings, perimeters) and labels' strokes
+    (:func:`_label_strokes`) are "other"."""
     notes: list[str] = []
+    text: list[int] = []
+    text_ids = _label_strokes(manifest) if auto_exclude and ids is None else set()
     prof = manifest.printer
     (x0, x1), (y0, y1) = prof.get("bed_x_mm", (-1e9, 1e9)), prof.get("bed_y_mm", (-1e9, 1e9))
     first = min((t.id for t in manifest.tracks), default=None)
@@ -248,10 +256,62 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
                 notes.append(f"track {t.id} is a closed loop ({length:.0f} mm: skirt, ring or "
                              "perimeter), not a test line; --tracks to override")
                 continue
+            if t.id in text_ids:
+                t.kind = "other"
+                text.append(t.id)
+                continue
         if why:
             t.kind = "other"
         elif ids is not None or z_range_mm is not None:
             t.kind = "test"
+    if text:
+        notes.append(f"{len(text)} tracks turn like letters or digits (> {TEXT_TURN_DEG:.0f} deg within "
+                     f"{TEXT_BOX_MM:g} mm: labels), not test lines: {_id_ranges(text)}; --tracks to override")
     if not manifest.test_tracks():
         notes.append("no test track left: check --tracks / --z-range-mm")
     return notes
+
+
+def _label_strokes(manifest: Manifest) -> set[int]:
+    """Ids of the test tracks that are strokes of printed labels: small (box diagonal
+    < TEXT_BOX_MM) and turning by more than TEXT_TURN_DEG, and the small tracks within
+    TEXT_NEAR_MM of those (straight strokes: "1", "l", "-"). Test lines run straight or
+    gently curved over tens of mm; the labels of the realdata tests ("Kf 10", "Kb 20")
+    turned 170-460 deg within 3-4.5 mm and were measured as test tracks."""
+    from scipy.spatial import cKDTree
+
+    small, seeds = {}, set()
+    for t in manifest.tracks:
+        if t.kind != "test":
+            continue
+        pts = np.asarray(t.points_mm, dtype=float)
+        if len(pts) < 2 or float(np.hypot(*np.ptp(pts, axis=0))) >= TEXT_BOX_MM:
+            continue
+        small[t.id] = t.at(np.linspace(0.0, t.length_mm, max(2, int(t.length_mm / 0.5) + 1)))[0]
+        d = np.diff(pts, axis=0)
+        d = d[np.hypot(*d.T) > 1e-6]
+        if len(d) >= 2:
+            a = np.arctan2(d[:, 1], d[:, 0])
+            if float(np.degrees(np.abs(np.angle(np.exp(1j * np.diff(a)))).sum())) > TEXT_TURN_DEG:
+                seeds.add(t.id)
+    text, grow = set(seeds), set(seeds)
+    trees = {k: cKDTree(v) for k, v in small.items()}
+    while grow:
+        new = set()
+        for k in set(small) - text:
+            if any(trees[g].query(small[k], distance_upper_bound=TEXT_NEAR_MM)[0].min() <= TEXT_NEAR_MM for g in grow):
+                new.add(k)
+        text |= new
+        grow = new
+    return text
+
+
+def _id_ranges(ids) -> str:
+    """[3, 4, 5, 9] -> "3-5,9" (the --tracks syntax)."""
+    ids = sorted(ids)
+    out, start = [], ids[0]
+    for a, b in zip(ids, ids[1:] + [None]):
+        if b != a + 1:
+            out.append(f"{start}-{a}" if a != start else f"{a}")
+            start = b
+    return ",".join(out)

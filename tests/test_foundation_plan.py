@@ -233,3 +233,33 @@ def test_plan_picks_test_tracks_by_their_gcode_comments(tmp_path, capsys):
         assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks-comment", bad]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and msg in err[0]
+
+
+def test_plan_leaves_printed_labels_out_of_the_test(tmp_path, capsys):
+    """A third-party test labels its lines ("Kb 20", as the realdata prints do): the
+    strokes turn sharply within a few mm (straight ones like "1" sit beside those) and are
+    not test tracks; the lines stay. A spiral test (it turns, but over tens of mm) stays."""
+    from calib.cli import main
+    from patterns.font import place_strokes, text_strokes
+
+    g = ["G21", "G90", "M83", "G28", "G0 Z0.2 F600"]
+    for y in (50, 60):                                                       # test lines
+        g += [f"G0 X50 Y{y}", f"G1 X100 Y{y} E2.5 F1200"]
+    ang = np.linspace(0, 4 * np.pi, 80)                                     # a spiral test
+    sp = np.column_stack([150 + (3 + 2 * ang) * np.cos(ang), 100 + (3 + 2 * ang) * np.sin(ang)])
+    g += [f"G0 X{sp[0, 0]:.3f} Y{sp[0, 1]:.3f}"] + [f"G1 X{x:.3f} Y{y:.3f} E0.1" for x, y in sp[1:]]
+    n_label = 0
+    for stroke in place_strokes(text_strokes("Kb 20", 3.5), (105, 58)):  # label beside the lines
+        g += [f"G0 X{stroke[0, 0]:.3f} Y{stroke[0, 1]:.3f}"]
+        g += [f"G1 X{x:.3f} Y{y:.3f} E0.05" for x, y in stroke[1:]]
+        n_label += 1
+    src = tmp_path / "labelled.gcode"
+    src.write_text("\n".join(g) + "\n")
+    out = tmp_path / "m.json"
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out)]) == 0
+    tracks = Manifest.load(out).tracks
+    assert len(tracks) == 3 + n_label
+    assert [t.id for t in tracks if t.kind == "test"] == [0, 1, 2]
+    assert "tracks turn like letters or digits" in capsys.readouterr().err    # (strokes < 3 mm: "other" anyway)
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--keep-all"]) == 0
+    assert sum(t.kind == "test" for t in Manifest.load(out).tracks) > 3
