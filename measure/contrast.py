@@ -177,18 +177,12 @@ def _clear_of_beads(manifest: Manifest, pts, clearance_mm: float = 0.3) -> np.nd
     """True where ``pts`` (mm) lie at least ``clearance_mm`` beyond every track's commanded edge."""
     from scipy.spatial import cKDTree
 
-    P, hw = [], []
-    for tr in manifest.tracks:
-        if tr.length_mm <= 0:
-            continue
-        ss = np.arange(0.0, tr.length_mm + 1e-9, 0.1)
-        wv = tr.interp("width_mm", ss)
-        on = wv > 0
-        P.append(tr.at(ss[on])[0])
-        hw.append(np.minimum(wv[on], 3.0) / 2)
-    if not P:
+    from measure.widths import bead_points
+
+    beads = bead_points(manifest)
+    if beads is None:
         return np.ones(len(pts), bool)
-    P, hw = np.vstack(P), np.concatenate(hw)
+    P, hw = beads[0], beads[3]
     tree = cKDTree(P)
     ok = np.ones(len(pts), bool)
     for i, nb in enumerate(tree.query_ball_point(pts, float(hw.max()) + clearance_mm)):

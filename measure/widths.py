@@ -370,18 +370,15 @@ def _reference_width(smp: Samples, w_nom):
     return np.minimum(w, MAX_WINDOW_WIDTH_MM)
 
 
-def _clearance(manifest: Manifest, smp: Samples, w_ref):
-    """Edge-to-edge gap (mm) from each station's bead to the nearest other bead, and the
-    kind of that track ("test", "label", "ruler", "fiducial", ...).
-
-    Other bead = any track but this one, or this track more than a bead-scale away along
-    its length (spirals, hairpins, self-crossings).
-    """
+def bead_points(manifest: Manifest, step_mm: float = 0.1):
+    """Every printed bead of the manifest as points every ``step_mm`` (mm): (xy (N, 2), track
+    id, arc length s (mm), half width (mm, commanded, capped at MAX_WINDOW_WIDTH_MM / 2),
+    track kind), or None when nothing is printed."""
     pts, tid, s, hw, kind = [], [], [], [], []
     for tr in manifest.tracks:
         if tr.length_mm <= 0:
             continue
-        ss = np.arange(0.0, tr.length_mm + 1e-9, 0.1)
+        ss = np.arange(0.0, tr.length_mm + 1e-9, step_mm)
         w = tr.interp("width_mm", ss)
         keep = w > 0
         pts.append(tr.at(ss[keep])[0])
@@ -389,12 +386,25 @@ def _clearance(manifest: Manifest, smp: Samples, w_ref):
         s.append(ss[keep])
         hw.append(np.minimum(w[keep], MAX_WINDOW_WIDTH_MM) / 2)
         kind.append(np.full(keep.sum(), tr.kind, dtype=object))
+    if not pts:
+        return None
+    return tuple(map(np.concatenate, (pts, tid, s, hw, kind)))
+
+
+def _clearance(manifest: Manifest, smp: Samples, w_ref):
+    """Edge-to-edge gap (mm) from each station's bead to the nearest other bead, and the
+    kind of that track ("test", "label", "ruler", "fiducial", ...).
+
+    Other bead = any track but this one, or this track more than a bead-scale away along
+    its length (spirals, hairpins, self-crossings).
+    """
     n = len(smp)
     gap = np.full(n, np.inf)
     gkind = np.array([""] * n, dtype=object)
-    if not pts:
+    beads = bead_points(manifest)
+    if beads is None:
         return gap, gkind
-    pts, tid, s, hw, kind = map(np.concatenate, (pts, tid, s, hw, kind))
+    pts, tid, s, hw, kind = beads
     tree = cKDTree(pts)
     xy = np.column_stack([smp.x_mm, smp.y_mm])
     reach = w_ref / 2 + float(hw.max()) + max(0.6, float(np.max(w_ref, initial=0.4)))

@@ -195,6 +195,8 @@ class _State:
         if code[0] in "Nn" and len(code) > 1 and code[1].isdigit():
             code = re.sub(r"^[Nn]\d+\s*", "", code)
             code = re.sub(r"\*\d+\s*$", "", code)
+            if not code:        # a line number alone ("N0"): nothing to do
+                return 0
         up = code.upper()
         head = up.split(None, 1)[0]
         if not re.match(r"^[GMT]\d", head):

@@ -7,7 +7,7 @@ CLI). Any other exception is a traceback a user would see.
 import math
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from calib.errors import UserError
@@ -32,6 +32,8 @@ LINE = st.one_of(MOVE, MOVE, OTHER, GARBAGE)
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(LINE, min_size=1, max_size=25))
+@example(["N0"])                     # a line number alone (found by this test)
+@example(["N7 *3", "G1 X1e400"])
 def test_parser_and_planner_never_raise_anything_but_a_user_error(lines):
     text = "G21\nG90\nM82\nG28\n" + "\n".join(lines) + "\n"
     try:
