@@ -116,8 +116,8 @@ def ghost_valid(path, man, registration) -> float:
                            width_mm=np.array([0.5, 0.5]), height_mm=np.array([0.2, 0.2]),
                            flow_mm3_s=np.array([1.0, 1.0])))
     gray, color = load_image(path)
-    gray, _ = bead_channel(gray, color, man, registration)
-    m = measure_widths(gray, m2, registration, color=color)
+    gray, channel = bead_channel(gray, color, man, registration)
+    m = measure_widths(gray, m2, registration, color=color, colour_axis=channel)
     return float(np.mean(m.table.valid[m.table.track == gid]))
 
 

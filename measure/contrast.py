@@ -15,7 +15,13 @@ a blend of two colours, measure/edges.py), so the projected image is measured ex
 like the grey one; it is rescaled to the grey image's bead and plate levels, so the
 polarity and the amplitude rules stay as they are.
 
-It is a candidate only when it raises the contrast-to-noise ratio |m_bead - m_bg| / sd_bg
+Presence: a line that never printed, on a light grained plate, has grain dark enough to
+pass for a bead in grey (27 % of such stations on the light-plate render) but the plate's
+colour. Where the axis separates bead from plate well (PRESENCE_CNR), a station whose
+colour at its centre is nearer the plate's is missing (:meth:`Channel.bead_likeness`,
+used by measure/widths.py), whichever image the widths are measured on.
+
+The projection replaces grey as a candidate only when it raises the contrast-to-noise ratio |m_bead - m_bg| / sd_bg
 by more than MIN_GAIN over grey (white or grey plastic on a neutral plate gains nothing),
 and it is used only when the widths measured on it scatter less (:func:`width_noise`):
 a JPEG stores colour at half resolution (4:2:0), which blurs and rings a chroma-weighted
@@ -34,6 +40,9 @@ from patterns.manifest import Manifest, sample_points
 MIN_GAIN = 1.5
 #: ... and then only when the widths measured on it scatter this many times less.
 MIN_NOISE_GAIN = 1.25
+#: The colour axis decides presence (measure/widths.py) when it separates bead from plate
+#: by at least this many plate sds.
+PRESENCE_CNR = 6.0
 #: Beads at least this wide (mm, commanded) give the bead colour; narrower ones are
 #: mostly edge at a phone's blur.
 MIN_WIDTH_MM = 0.45
@@ -50,14 +59,33 @@ class Channel:
     cnr_gray    contrast-to-noise ratio of bead against plate in grey
     cnr_color   the same for the projection (1)
     used        whether the projection replaced grey
+    plate_level, bead_level   medians of the projection on plate and on beads
     noise_*_mm, valid_*   the widths' scatter and valid fraction on either image
                 (:func:`width_noise`; only when the contrast-to-noise ratio made it a candidate)
     """
+
+    @property
+    def tells_presence(self) -> bool:
+        """The colour axis separates bead from plate by >= PRESENCE_CNR plate sds (whether or
+        not the widths are measured on it): :func:`bead_likeness` then says bead or plate."""
+        return self.weights is not None and bool(self.cnr_color >= PRESENCE_CNR)
+
+    def bead_likeness(self, color, uv) -> np.ndarray:
+        """(N,) where the colour at pixels ``uv`` (N, 2) lies between plate (0) and bead (1)
+        on the discriminant axis (1)."""
+        cf = color.astype(np.float32) / 255.0
+        H, W = color.shape[:2]
+        u, v = np.clip(uv[:, 0], 0, W - 1), np.clip(uv[:, 1], 0, H - 1)
+        val = sum(float(self.weights[k]) * ndimage.map_coordinates(cf[..., k], [v, u], order=1)
+                  for k in range(3))
+        return (val - self.plate_level) / (self.bead_level - self.plate_level)
 
     weights: np.ndarray | None
     cnr_gray: float
     cnr_color: float
     used: bool
+    plate_level: float = float("nan")
+    bead_level: float = float("nan")
     noise_gray_mm: float = float("nan")
     noise_color_mm: float = float("nan")
     valid_gray: float = float("nan")
@@ -122,10 +150,10 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     S = np.cov(_trim(cb).T) + np.cov(_trim(cp).T) + 1e-6 * np.eye(3)
     wts = np.linalg.solve(S, mb - mp)
     cnr_c = _cnr(cb @ wts, cp @ wts)
-    ch = Channel(wts, cnr_g, cnr_c, False)
+    pb, pp = float(np.median(cb @ wts)), float(np.median(cp @ wts))
+    ch = Channel(wts, cnr_g, cnr_c, False, plate_level=pp, bead_level=pb)
     if not cnr_c > MIN_GAIN * cnr_g:
         return gray, ch
-    pb, pp = float(np.median(cb @ wts)), float(np.median(cp @ wts))
     gbm, gpm = float(np.median(gb)), float(np.median(gp))
     proj = cf @ wts.astype(np.float32)
     img = (gpm + (proj - pp) * ((gbm - gpm) / (pb - pp))).astype(np.float32)

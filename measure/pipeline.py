@@ -72,14 +72,14 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
 
         from measure.autoreg import refine_with_centres
         t0 = time.perf_counter()
-        m0 = measure_widths(gray, manifest, reg, color=color)
+        m0 = measure_widths(gray, manifest, reg, color=color, colour_axis=channel, strip_lines=1)
         t = m0.table
         reg = refine_with_centres(reg, t.x_mm, t.y_mm, m0.nx, m0.ny, m0.centre_mm, t.valid)
         reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0
-    meas = measure_widths(gray, manifest, reg, color=color)
+    meas = measure_widths(gray, manifest, reg, color=color, colour_axis=channel)
     table = meas.table
     cal = apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=meas.blur_plane_px,
-                                     test_measurement=meas)
+                                     test_measurement=meas, colour_axis=channel)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
         table.width_mm = np.where(table.width_mm > 0, table.width_mm - cal.offset_mm, table.width_mm)
     valid_frac = float(np.mean(table.valid)) if len(table) else 0.0
@@ -157,7 +157,8 @@ def _resolution_px_per_mm(reg, table) -> float:
     return float(np.median(reg.px_per_mm(xy[:: max(1, len(xy) // 500)])))
 
 
-def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, test_measurement=None):
+def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, test_measurement=None,
+                               colour_axis=None):
     """measure/calibrate.py on the print's width-reference prime line, measured like the
     test tracks (a reference in glare gets a bracketed offset unless ``test_measurement``,
     the test tracks' WidthMeasurement, vouches for the streak model: measure/calibrate.py);
@@ -170,7 +171,8 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
         return WidthCalibration(note="no apparent-width calibration: the print has no width-reference prime "
                                      "line (third-party G-code?); widths are apparent widths")
     smp, section = ref
-    m = measure_widths(gray, smp, reg, manifest=manifest, color=color, blur_prior_px=blur_prior_px)
+    m = measure_widths(gray, smp, reg, manifest=manifest, color=color, blur_prior_px=blur_prior_px,
+                       colour_axis=colour_axis)
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
     ok = m.table.valid
     in_glare = bool(ok.any()) and m.glare_streak[ok].mean() > GLARE_REFERENCE_SHARE

@@ -4,10 +4,8 @@ At each station of ``patterns.manifest.sample_points`` (every 0.25 mm) the image
 along the track normal *in bed millimetres* (points X + t n, t in mm, mapped through the
 registration, bilinear ``scipy.ndimage.map_coordinates``): the local Jacobian of the
 mapping is thereby applied exactly, and the fitted edge-pair width (measure.edges) is in
-mm directly; each profile stops NEIGHBOUR_CLEAR_SIGMAS blurs short of the nearest other
-bead's edge. (Averaging 5 lines over each station's 0.25 mm of track was tried: widths
-scattered ~10 % less, but the automatic pose on a phone render got 18 -> 23 um worse and
-more stations were flagged noisy; not kept.) Two passes: first with the blur free; then the blur, which is a property of
+mm directly; each profile averages STRIP_LINES lines over the station's STRIP_MM of track
+and stops NEIGHBOUR_CLEAR_SIGMAS blurs short of the nearest other bead's edge. Two passes: first with the blur free; then the blur, which is a property of
 the optics and therefore smooth over the image, is fitted as a plane s_px(u, v) over the
 wide beads (w > 5 s, where w and s separate) and held fixed, which removes the w-s-A
 degeneracy of narrow beads.
@@ -45,8 +43,11 @@ from patterns.manifest import Manifest, Samples, sample_points
 
 #: Multiplies the fit sd; from bench_measure coverage on renders (68 % target).
 SD_CALIBRATION = 0.85
-#: Edge-model error added in quadrature (px), e.g. rounding of the bead shoulder.
-SD_FLOOR_PX = 0.03
+#: Edge-model error added in quadrature (px), e.g. rounding of the bead shoulder. (0.03
+#: before the profiles averaged STRIP_LINES lines: with the strip the flatbed render's
+#: errors fell to 1.2 um and 92 % of them lay within a 0.03 px floor's sd; 0.015 puts the
+#: flat, phone and translucent renders at 67-68 %.)
+SD_FLOOR_PX = 0.015
 #: Profile step (px) aimed for; the fit is insensitive below ~0.5 px.
 STEP_PX = 0.5
 #: Fewest background samples each side (mm) needed for a trustworthy edge fit.
@@ -61,6 +62,11 @@ MISSING_FRACTION = 0.3
 #: ... and below this fraction of the scan's typical one at its commanded width, so that a
 #: whole track that never printed is missing too (a light gradient of 40 % leaves 0.6).
 SCAN_AMPLITUDE_FRACTION = 0.5
+#: ... and where the bead's colour differs from the plate's (measure/contrast.py), when the
+#: colour at its centre lies less than this fraction of erf(w / 2 sqrt2 s) of the way from
+#: the plate's to the beads'. Light-plate render: never-printed stations that passed in grey
+#: 0.00-0.13, printed ones >= 0.56 (0.25 mm) and >= 0.80 (0.5-1.6 mm).
+PRESENCE_FRACTION = 0.35
 #: F statistic above which a glare streak replaces the plain edge pair. Streak-free renders
 #: (bead profile shaded, no glare) give F <= 27 on 300 stations, median 0.8 (99th
 #: percentile 22); the streaks that bias the plain fit by +5..+12 um give F 300-600.
@@ -70,6 +76,10 @@ STREAK_F = 30.0
 #: 0.91-0.95; edge-model misfit on translucent or phone renders 0.03-0.49).
 STREAK_MIN_STATIONS = 20
 STREAK_COHERENCE = 0.6
+#: Each station's profile averages this many lines spread over this length (mm) along the
+#: track: the stations' spacing, so that every pixel row along a track is used once.
+STRIP_LINES = 5
+STRIP_MM = 0.25
 #: A profile's samples stop this many blur sigmas short of the nearest other bead's edge
 #: (its erfc tail there is 0.7 %) ...
 NEIGHBOUR_CLEAR_SIGMAS = 3.0
@@ -108,7 +118,7 @@ def widths(image, manifest_or_samples, registration, *, manifest: Manifest | Non
 
 def measure_widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
                    color=None, ds_mm: float = 0.25, fix_blur: bool = True,
-                   blur_prior_px=None) -> WidthMeasurement:
+                   blur_prior_px=None, colour_axis=None, strip_lines: int = None) -> WidthMeasurement:
     """Measure the bead width at every station.
 
     image                gray float (H, W), 0..1
@@ -118,6 +128,10 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     color                uint8 (H, W, 3) image for glare detection (saturation in any channel)
     blur_prior_px        (a, b, c) blur plane (px) from elsewhere in the picture, used when
                          the stations lie on one line (the width reference: _blur_plane)
+    colour_axis          measure.contrast.Channel: where its colour axis tells bead from
+                         plate, a station whose centre has the plate's colour is missing
+    strip_lines          lines averaged per profile over STRIP_MM along the track (default
+                         STRIP_LINES; 1 = one line through the station: see _strip_profiles)
     """
     if isinstance(manifest_or_samples, Manifest):
         manifest = manifest_or_samples
@@ -157,8 +171,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     pts = xy[:, None, :] + t[..., None] * nrm[:, None, :]
     uv = registration.project(pts.reshape(-1, 2)).reshape(n, m, 2)
     inside = (uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= Hh - 1)
-    y = ndimage.map_coordinates(gray, [uv[..., 1].ravel(), uv[..., 0].ravel()], order=1,
-                                mode="nearest").reshape(n, m)
+    y = _strip_profiles(gray, registration, pts, nrm, W, Hh, STRIP_LINES if strip_lines is None else strip_lines)
     out = inside.mean(axis=1) < 0.999
     flag[out] = "edge"
     step_px = (2 * half / (m - 1)) * ppm_n
@@ -200,6 +213,12 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     a_ref = np.maximum(_track_median(smp.track, amp, good), SCAN_AMPLITUDE_FRACTION * a0 * ef)
     noise = fit.rms
     missing = (amp < MISSING_FRACTION * a_ref) | (amp < 3 * noise) | (w < 1.0 / ppm_n)
+    if color is not None and colour_axis is not None and colour_axis.tells_presence:
+        # plate grain can pass for a bead in grey, not in colour (measure/contrast.py)
+        ef_c = special.erf(np.clip(np.where(np.isfinite(w_nom), w_nom, w_ref), 1e-3, None)
+                           / (2 * np.sqrt(2) * np.maximum(fit.params[:, 5], 1e-4)))
+        at = xy + np.clip(np.nan_to_num(c), -half, half)[:, None] * nrm
+        missing |= colour_axis.bead_likeness(color, registration.project(at)) < PRESENCE_FRACTION * ef_c
     if color is not None:
         sat = _saturated(color, uv, t, w, c, inside)
         glare = sat & (np.mean(sat) < 0.5)     # a whole saturated print is exposure, not glare
@@ -238,6 +257,24 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else (), glare_streak=streak,
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w))
+
+
+def _strip_profiles(gray, registration, pts, nrm, W, H, lines: int):
+    """Profiles (N, M) at the points ``pts`` (N, M, 2) (bed mm), each the mean of ``lines``
+    parallel lines spread evenly over STRIP_MM along the track (tangent = the normal turned
+    by -90 deg). One line per station uses one pixel row in six at 600 dpi; five cut the
+    widths' scatter by 10-15 % (light plate, PNG: 13.5 -> 8.6 um RMS; flatbed with every
+    phenomenon 10.5 -> 9.2 um), but the bead centres they give moved the automatic pose's
+    ICP step the wrong way on phone renders (true pose error 13 -> 17 and 14 -> 21 um on two
+    seeds; not understood): measure/pipeline.py takes the centres for the pose from one line."""
+    n, m = pts.shape[:2]
+    tan = np.column_stack([nrm[:, 1], -nrm[:, 0]])
+    acc = np.zeros((n, m), np.float64)
+    for f in (np.arange(lines) + 0.5) / lines - 0.5:
+        uv = registration.project((pts + f * STRIP_MM * tan[:, None, :]).reshape(-1, 2))
+        acc += ndimage.map_coordinates(gray, [np.clip(uv[:, 1], 0, H - 1), np.clip(uv[:, 0], 0, W - 1)], order=1,
+                                       mode="nearest").reshape(n, m)
+    return acc / lines
 
 
 def _clear_of_neighbour(t, w_ref, gap, blur_mm):
