@@ -5,10 +5,10 @@ along the track normal *in bed millimetres* (points X + t n, t in mm, mapped thr
 registration, bilinear ``scipy.ndimage.map_coordinates``): the local Jacobian of the
 mapping is thereby applied exactly, and the fitted edge-pair width (measure.edges) is in
 mm directly; each profile averages STRIP_LINES lines over the station's STRIP_MM of track
-and stops NEIGHBOUR_CLEAR_SIGMAS blurs short of the nearest other bead's edge. Two passes: first with the blur free; then the blur, which is a property of
-the optics and therefore smooth over the image, is fitted as a plane s_px(u, v) over the
-wide beads (w > 5 s, where w and s separate) and held fixed, which removes the w-s-A
-degeneracy of narrow beads.
+and stops NEIGHBOUR_CLEAR_SIGMAS blurs short of the nearest other bead's edge. Two passes:
+first with the blur free; then the blur, which is a property of the optics and therefore
+smooth over the image, is fitted as a plane s_px(u, v) over the wide beads (w > 4 s, where
+w and s separate) and held fixed, which removes the w-s-A degeneracy of narrow beads.
 
 Uncertainty: the scaled covariance of the fit (measure.edges) times
 sqrt(1 / min(1, step_px)) because profile samples closer than a pixel are not independent,
@@ -83,8 +83,11 @@ STRIP_MM = 0.25
 #: A profile's samples stop this many blur sigmas short of the nearest other bead's edge
 #: (its erfc tail there is 0.7 %) ...
 NEIGHBOUR_CLEAR_SIGMAS = 3.0
-#: ... but reach at least this many blur sigmas beyond the bead's own edge.
+#: ... but reach at least this many blur sigmas beyond the bead's own edge; a station whose
+#: neighbour is closer than NEIGHBOUR_FLAG_SIGMAS blurs is flagged "neighbour" (the
+#: neighbour's edge then brings 2 % of the contrast into the window's end: 0.5 erfc(sqrt2)).
 MIN_CLEAR_SIGMAS = 2.0
+NEIGHBOUR_FLAG_SIGMAS = 4.0
 
 
 @dataclass
@@ -239,6 +242,9 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
               | (w > 2 * half - 2 * MIN_BACKGROUND_MM * 0.5) | (sd > OUTLIER_FACTOR * sd_ref)
               | (rel_rms > OUTLIER_FACTOR * rms_ref))
     flag[(flag == "") & failed] = "fit"
+    # the window cannot stay clear of a neighbour closer than NEIGHBOUR_FLAG_SIGMAS blurs:
+    # its blurred edge (>= 2 % of the contrast at the window's end) would bias the width
+    flag[(flag == "") & (gap < NEIGHBOUR_FLAG_SIGMAS * fit.params[:, 5])] = "neighbour"
     if manifest is not None:
         flag[(flag == "") & _at_end(manifest, smp, w, w_ref)] = "end"
     blob = w > np.maximum(2.2 * w_ref, w_ref + 0.6)

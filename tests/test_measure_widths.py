@@ -216,3 +216,21 @@ def test_a_never_printed_line_on_a_light_grained_plate_is_missing_by_its_colour(
     assert (tb.flag[~gone] == "missing").mean() < 0.01 and tb.valid[~gone].mean() > 0.9
     grey = measure_widths(g, man, reg, color=r.image).table
     assert grey.valid[gone].mean() > 0.1
+
+
+@pytest.mark.parametrize("blur_px, flagged", [(0.7, False), (2.4, True)])
+def test_a_neighbour_closer_than_four_blurs_flags_the_station(blur_px, flagged):
+    """1.0 mm beads 0.5 mm apart: clear at a flatbed's blur (0.06 mm at 300 dpi); at 0.2 mm
+    the neighbour's edge reaches into any window wide enough to see the bead's own edge."""
+    from measure.camera import Camera
+    from measure.render import render
+    man = scene_manifest(widths=(1.0,) * 3, pitch_mm=1.5)
+    r = render(man, None, Camera.flatbed(scene_region(man), dpi=300), seed=2, blur_px=blur_px, clutter=False)
+    g = gray_of(r)
+    tb = measure_widths(g, man, register(g, man), color=r.image).table
+    mid = (tb.track == 1) & (tb.s_mm > 5) & (tb.s_mm < 55)
+    if flagged:
+        assert (tb.flag[mid] == "neighbour").mean() > 0.95
+    else:
+        assert tb.valid[mid].mean() > 0.95
+        assert abs(np.mean((tb.width_mm - r.table.width_mm)[mid & tb.valid])) < 0.004
