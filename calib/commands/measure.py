@@ -50,6 +50,10 @@ def run(args) -> int:
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "
           f"registration residual {res.registration.residual_mm:.3f} mm ({res.registration.method})",
           file=sys.stderr)
+    on = s.get("measured_on", {})
+    if on.get("channel") == "colour discriminant":
+        print(f"calib measure: widths measured on the colour axis that tells bead from plate (scatter "
+              f"{on['width_noise_um_colour']:.0f} um against {on['width_noise_um_grey']:.0f} in grey)", file=sys.stderr)
     if s.get("apparent_width", {}).get("note"):
         print(f"calib measure: {s['apparent_width']['note']}", file=sys.stderr)
     for w in s["warnings"]:
