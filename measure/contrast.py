@@ -36,8 +36,10 @@ from scipy import ndimage
 
 from patterns.manifest import Manifest, sample_points
 
-#: The colour projection replaces grey only above this gain in contrast-to-noise ratio.
-MIN_GAIN = 1.5
+#: The colour projection is a candidate only above this gain in contrast-to-noise ratio
+#: (its trial costs two measurements; the gains that paid were 2.1-4x, a 12 MP phone render
+#: of white beads on a dark plate gains 1.6x and keeps grey).
+MIN_GAIN = 2.0
 #: ... and then only when the widths measured on it scatter this many times less.
 MIN_NOISE_GAIN = 1.25
 #: The colour axis decides presence (measure/widths.py) when it separates bead from plate
@@ -168,7 +170,7 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     return (img if ch.used else gray), ch
 
 
-def width_noise(img, color, manifest: Manifest, registration, ds_mm: float = 1.0) -> tuple[float, float]:
+def width_noise(img, color, manifest: Manifest, registration, ds_mm: float = 2.0) -> tuple[float, float]:
     """(noise mm, valid fraction) of the widths measured on ``img`` at stations every
     ``ds_mm``: the robust sd of the difference between consecutive valid stations of a
     track over sqrt 2 (a bead's width changes in steps: the median absolute difference
