@@ -72,7 +72,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
 
         from measure.autoreg import refine_with_centres
         t0 = time.perf_counter()
-        m0 = measure_widths(gray, manifest, reg, color=color, colour_axis=channel, strip_lines=1)
+        m0 = measure_widths(gray, manifest, reg, color=color, colour_axis=channel)
         t = m0.table
         reg = refine_with_centres(reg, t.x_mm, t.y_mm, m0.nx, m0.ny, m0.centre_mm, t.valid)
         reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0

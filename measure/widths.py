@@ -121,7 +121,7 @@ def widths(image, manifest_or_samples, registration, *, manifest: Manifest | Non
 
 def measure_widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
                    color=None, ds_mm: float = 0.25, fix_blur: bool = True,
-                   blur_prior_px=None, colour_axis=None, strip_lines: int = None) -> WidthMeasurement:
+                   blur_prior_px=None, colour_axis=None) -> WidthMeasurement:
     """Measure the bead width at every station.
 
     image                gray float (H, W), 0..1
@@ -133,8 +133,6 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                          the stations lie on one line (the width reference: _blur_plane)
     colour_axis          measure.contrast.Channel: where its colour axis tells bead from
                          plate, a station whose centre has the plate's colour is missing
-    strip_lines          lines averaged per profile over STRIP_MM along the track (default
-                         STRIP_LINES; 1 = one line through the station: see _strip_profiles)
     """
     if isinstance(manifest_or_samples, Manifest):
         manifest = manifest_or_samples
@@ -174,7 +172,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     pts = xy[:, None, :] + t[..., None] * nrm[:, None, :]
     uv = registration.project(pts.reshape(-1, 2)).reshape(n, m, 2)
     inside = (uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= Hh - 1)
-    y = _strip_profiles(gray, registration, pts, nrm, W, Hh, STRIP_LINES if strip_lines is None else strip_lines)
+    y = _strip_profiles(gray, registration, t, smp, manifest, W, Hh, STRIP_LINES)
     out = inside.mean(axis=1) < 0.999
     flag[out] = "edge"
     step_px = (2 * half / (m - 1)) * ppm_n
@@ -265,19 +263,34 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w))
 
 
-def _strip_profiles(gray, registration, pts, nrm, W, H, lines: int):
-    """Profiles (N, M) at the points ``pts`` (N, M, 2) (bed mm), each the mean of ``lines``
-    parallel lines spread evenly over STRIP_MM along the track (tangent = the normal turned
-    by -90 deg). One line per station uses one pixel row in six at 600 dpi; five cut the
-    widths' scatter by 10-15 % (light plate, PNG: 13.5 -> 8.6 um RMS; flatbed with every
-    phenomenon 10.5 -> 9.2 um), but the bead centres they give moved the automatic pose's
-    ICP step the wrong way on phone renders (true pose error 13 -> 17 and 14 -> 21 um on two
-    seeds; not understood): measure/pipeline.py takes the centres for the pose from one line."""
-    n, m = pts.shape[:2]
-    tan = np.column_stack([nrm[:, 1], -nrm[:, 0]])
+def _strip_profiles(gray, registration, t, smp: Samples, manifest, W, H, lines: int):
+    """Profiles (N, M) at offsets ``t`` (N, M) (mm) along the normals of the stations ``smp``,
+    each the mean of ``lines`` profiles spread evenly over STRIP_MM of the track around
+    the station, each across the track where it lies (``manifest`` given: the track's own
+    polyline; else straight along the station's tangent). One line per station uses one
+    pixel row in six at 600 dpi; five cut the widths' scatter by 10-15 % (light plate,
+    PNG: 13.5 -> 8.6 um RMS; flatbed with every phenomenon 10.5 -> 9.2 um)."""
+    n, m = t.shape
+    nrm = np.column_stack([smp.nx, smp.ny])
+    xy = np.column_stack([smp.x_mm, smp.y_mm])
+    tracks = {tr.id: tr for tr in manifest.tracks} if manifest is not None else {}
     acc = np.zeros((n, m), np.float64)
     for f in (np.arange(lines) + 0.5) / lines - 0.5:
-        uv = registration.project((pts + f * STRIP_MM * tan[:, None, :]).reshape(-1, 2))
+        pos, nf = xy + f * STRIP_MM * np.column_stack([nrm[:, 1], -nrm[:, 0]]), nrm
+        if f != 0.0 and tracks:
+            # a straight line along the tangent leaves a curved bead: on a spiral's inner
+            # turns the averaged centres moved inwards, and the automatic pose's ICP step
+            # with them (phone renders: true pose error 13 -> 17, 14 -> 21 um; following
+            # the track: 11, 13 um, against 13, 14 from one line per station)
+            pos, nf = pos.copy(), nrm.copy()
+            for k in np.unique(smp.track):
+                tr = tracks.get(int(k))
+                if tr is None or tr.length_mm <= 0:
+                    continue
+                i = np.flatnonzero(smp.track == k)
+                p_, tan = tr.at(np.clip(smp.s_mm[i] + f * STRIP_MM, 0.0, tr.length_mm))
+                pos[i], nf[i] = p_, np.column_stack([-tan[:, 1], tan[:, 0]])
+        uv = registration.project((pos[:, None, :] + t[..., None] * nf[:, None, :]).reshape(-1, 2))
         acc += ndimage.map_coordinates(gray, [np.clip(uv[:, 1], 0, H - 1), np.clip(uv[:, 0], 0, W - 1)], order=1,
                                        mode="nearest").reshape(n, m)
     return acc / lines
