@@ -234,3 +234,21 @@ def test_a_neighbour_closer_than_four_blurs_flags_the_station(blur_px, flagged):
     else:
         assert tb.valid[mid].mean() > 0.95
         assert abs(np.mean((tb.width_mm - r.table.width_mm)[mid & tb.valid])) < 0.004
+
+
+def test_a_width_with_a_larger_but_small_sd_is_kept_and_a_misfit_is_not():
+    """The fit-quality rule (measure.widths.unfit). Peers' median sd 1.6 um: a glare-streak
+    station fitted with the streak reads sd ~10 um with a residual like its peers' and an
+    honest error (600 dpi renders, every phenomenon: 9.6 um RMS, 0.8 % beyond 3 sd); it was
+    flagged for its sd alone (valid 87.7 %). Now it is kept up to SD_OUTLIER_MIN_MM; a larger
+    sd, a misfitting profile or an sd above a quarter of the width still fail."""
+    from measure.widths import SD_OUTLIER_MIN_MM, unfit
+    w = np.full(5, 0.5)
+    sd_ref, rms_ref = np.full(5, 0.0016), np.full(5, 0.01)
+    sd = np.array([0.0016, 0.010, SD_OUTLIER_MIN_MM * 1.5, 0.010, 0.2])
+    rel = np.array([0.01, 0.011, 0.01, 0.05, 0.01])
+    assert unfit(w, sd, sd_ref, rel, rms_ref).tolist() == [False, False, True, True, True]
+    # where the peers themselves are noisy (a phone), 4x their sd still sets the bar
+    one = np.ones(1)
+    assert unfit(0.5 * one, 0.025 * one, 0.005 * one, 0.01 * one, 0.01 * one)[0]
+    assert not unfit(0.5 * one, 0.018 * one, 0.005 * one, 0.01 * one, 0.01 * one)[0]
