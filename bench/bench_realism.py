@@ -9,6 +9,9 @@ printer's physical widths (the bead's footprint).
 
 Rows per scene: width RMS error and bias of valid test-track stations (mm), valid
 fraction of test-track stations; over all scenes: the share of printed markers found.
+Where the picture's own width reference cannot calibrate the widths (a Bowden printer's
+reference does not settle; a light plate's JPEG), the same rows after the offset the fit
+finds (`scan_bias` fitted with the truth's own model: :func:`calibrated_by_fit`).
 """
 from __future__ import annotations
 
@@ -70,7 +73,7 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
         try:
             res = measure_scan(path, man)
         except UserError as exc:
-            return {"rms": np.nan, "bias": np.nan, "valid": 0.0, "calibrated": False, "error": str(exc),
+            return {"rms": np.nan, "bias": np.nan, "valid": 0.0, "calibrated": False, "error": str(exc), "by_fit": None,
                     "markers": 0, "markers_expected": len(man.fiducials), "missed": np.nan,
                     "ghost_valid": np.nan}
         ghost = ghost_valid(path, man, res.registration)
@@ -78,7 +81,8 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
     truth_ok = np.isfinite(tr.width_mm) & (tr.width_mm > 0)
     ok = tb.valid & truth_ok
     e = tb.width_mm[ok] - tr.width_mm[ok]
-    return {"rms": float(np.sqrt(np.mean(e ** 2))) if ok.any() else np.nan,
+    by_fit = None if res.summary["apparent_width"]["applied"] else calibrated_by_fit(man, tb, tr, printer)
+    return {"by_fit": by_fit, "rms": float(np.sqrt(np.mean(e ** 2))) if ok.any() else np.nan,
             "bias": float(np.mean(e)) if ok.any() else np.nan,
             "valid": float(np.mean(tb.valid[truth_ok])) if truth_ok.any() else 0.0,
             "missed": float(np.mean(tb.flag[truth_ok] == "missing")) if truth_ok.any() else np.nan,
@@ -86,6 +90,32 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
             "calibrated": bool(res.summary["apparent_width"]["applied"]),
             "markers": int(res.registration.n_markers), "markers_expected": len(man.fiducials),
             "method": res.registration.method, "error": ""}
+
+
+def calibrated_by_fit(man, tb, tr, printer: str) -> dict:
+    """Apparent widths calibrated by the fit: a MAP fit of ``<truth model>+scan_bias`` on the
+    whole scan, with the prior `calib fit` gives uncalibrated widths (fit/measurement.py),
+    and the widths corrected by the fitted ``w_apparent = w + b0 + b1 (w - w_ref)``
+    (fit/effects.py ScanBias). With the truth's own dynamics this is the best a fit can do;
+    {rms, bias (mm) of the corrected valid widths, b0_mm, b1}."""
+    from fit.data import FitData, scan_from_table
+    from fit.effects import ScanBias
+    from fit.likelihood import NoiseOptions
+    from fit.measurement import UNCALIBRATED_SD_MM
+    from fit.sampler import fit_map, make_problem
+    from fit.truth import load_truth
+    from patterns.profile import data_dir
+
+    spec, values, _ = load_truth(data_dir() / "truths" / PRINTERS[printer][1], man.printer)
+    prior = {"scan_bias.b0_mm": {"prior": "normal", "mu": 0.0, "sd": UNCALIBRATED_SD_MM}}
+    problem = make_problem(f"{spec}+scan_bias", FitData([scan_from_table(tb, man, "scan")]), NoiseOptions(),
+                           prior, ())
+    v = fit_map(problem, seed=0, global_search=True).values
+    b0, b1 = v["scan_bias.b0_mm"], v["scan_bias.b1"]
+    w = (tb.width_mm - b0 + b1 * ScanBias.W_REF_MM) / (1.0 + b1)
+    ok = tb.valid & np.isfinite(tr.width_mm) & (tr.width_mm > 0)
+    e = w[ok] - tr.width_mm[ok]
+    return {"rms": float(np.sqrt(np.mean(e ** 2))), "bias": float(np.mean(e)), "b0_mm": float(b0), "b1": float(b1)}
 
 
 def ghost_valid(path, man, registration) -> float:
@@ -134,6 +164,14 @@ def run() -> list[Row]:
         if cam == "flatbed":
             rows.append(Row("realism", f"{label}: width bias", f["bias"], "mm", "|.| <= 0.005",
                             bool(np.isfinite(f["bias"]) and abs(f["bias"]) <= 0.005)))
+        if f.get("by_fit"):
+            b = f["by_fit"]
+            rows.append(Row("realism", f"{label}: width RMS error, offset by the fit's scan_bias "
+                            f"(b0 {b['b0_mm'] * 1000:+.0f} um, b1 {b['b1']:+.3f})", b["rms"], "mm",
+                            f"<= {target_rms}", b["rms"] <= target_rms))
+            if cam == "flatbed":
+                rows.append(Row("realism", f"{label}: width bias, offset by the fit's scan_bias", b["bias"], "mm",
+                                "|.| <= 0.005", abs(b["bias"]) <= 0.005))
         rows.append(Row("realism", f"{label}: valid test stations", f["valid"], "fraction", ">= 0.90",
                         f["valid"] >= 0.90))
         rows.append(Row("realism", f"{label}: printed stations called missing", f["missed"], "fraction",
