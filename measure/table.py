@@ -10,7 +10,8 @@ CSV columns (README "Widths CSV"):
     width_sd_mm  one-sigma uncertainty of width_mm (mm)
     valid        1 if the sample may be fitted, 0 if not
     flag         empty, or the reason the sample is not valid (crossing, label, blob,
-                 missing, glare, edge, ...)
+                 missing, glare, edge, fit, neighbour, end, isolated: a valid-looking
+                 station among failed fits, ...)
 """
 from __future__ import annotations
 

@@ -252,3 +252,24 @@ def test_a_width_with_a_larger_but_small_sd_is_kept_and_a_misfit_is_not():
     one = np.ones(1)
     assert unfit(0.5 * one, 0.025 * one, 0.005 * one, 0.01 * one, 0.01 * one)[0]
     assert not unfit(0.5 * one, 0.018 * one, 0.005 * one, 0.01 * one, 0.01 * one)[0]
+
+
+def test_a_valid_station_among_failed_fits_is_flagged_isolated():
+    """measure.widths.isolated: stations every 0.25 mm. In a stretch of failed fits (a bead
+    over a plate logo) the two that passed are flagged; valid stations next to a crossing
+    or a missing bead (flags that say nothing of the profile) and at the edge of the
+    stretch (half their neighbours valid) are not."""
+    from measure.widths import isolated
+    s = np.arange(0, 20, 0.25)
+    flag = np.array([""] * len(s), dtype=object)
+    flag[(s >= 5) & (s < 8)] = "fit"
+    flag[[22, 25]] = ""                              # s = 5.5, 6.25: inside the stretch
+    flag[(s >= 12) & (s < 15)] = "crossing"
+    flag[60] = ""                                    # s = 15: valid right after the crossings
+    flag[(s >= 16) & (s < 18) & (s != 17)] = "missing"
+    got = isolated(np.zeros(len(s), int), s, flag)
+    assert np.flatnonzero(got).tolist() == [22, 25]
+    # per track: the same stations on another track id are judged on their own
+    two = isolated(np.r_[np.zeros(len(s), int), np.ones(len(s), int)], np.r_[s, s],
+                   np.r_[flag, np.array([""] * len(s), dtype=object)])
+    assert np.flatnonzero(two).tolist() == [22, 25]
