@@ -33,6 +33,9 @@ from measure.camera import PHONE_FOCAL_FRACTION, Camera, apply_homography, disto
 
 #: Corner misfit (px) above which a marker corner is an outlier in RANSAC.
 RANSAC_PX = 4.0
+#: Below this robust z (clarity) the tracks' polarity test gives way to the markers' (they
+#: were found in the plain or in the negative image); 0.1-0.5 on the 600 dpi spiral renders.
+POLARITY_CLEAR = 2.0
 #: Offset of AprilTag-refined ArUco corners from the pixel-centre convention (px).
 APRILTAG_OFFSET_PX = 0.5
 
@@ -134,8 +137,10 @@ def _area(p):
 
 
 # -- fiducials ----------------------------------------------------------------------------
-def detect_markers(gray) -> tuple[list[int], list[np.ndarray]]:
-    """ArUco DICT_4X4_50 markers in a gray image: (ids, corners (4, 2) px each).
+def detect_markers(gray, *, with_negative: bool = False):
+    """ArUco DICT_4X4_50 markers in a gray image: (ids, corners (4, 2) px each), and with
+    ``with_negative`` a third list: whether each was found in the negative image (its
+    printed cells darker than the plate: dark plastic on a light plate).
 
     Dark plastic on a light plate gives inverted markers; ``detectInvertedMarker`` finds
     them with corners off by up to 2 px when the printed quiet frame is present, so the
@@ -153,6 +158,7 @@ def detect_markers(gray) -> tuple[list[int], list[np.ndarray]]:
     small = g8 if k == 1.0 else cv2.resize(g8, (round(g8.shape[1] / k), round(g8.shape[0] / k)),
                                            interpolation=cv2.INTER_AREA)
     found: dict[int, np.ndarray] = {}
+    negative: dict[int, bool] = {}
     # plain first; then with plate grain smoothed away (textured PEI on a light plate with
     # translucent plastic, measure/phenomena.py "grain": 0-2 of 4 markers found plain, all
     # four after a 3-5 px median at the search scale)
@@ -167,14 +173,25 @@ def detect_markers(gray) -> tuple[list[int], list[np.ndarray]]:
                 if int(i) in found:
                     continue
                 c = c.reshape(4, 2).astype(float) * k
-                refined = _refine_in_crop(g8, c, int(i), neg, cv2.aruco.ArucoDetector(d, fine),
-                                          median_px=(2 * int(round(median_px * k / 2)) + 1) if median_px else 0)
+                # the corners found at the search scale sit ~0.4 mm inside the printed
+                # border: a marker whose crop fails plain is tried again through a median
+                # (strings and grain: 2 of 3 markers of one render fell back to the search
+                # corners, read 6 % small, and the registration was 13 % off in scale)
+                own = (2 * int(round(median_px * k / 2)) + 1) if median_px else 0
+                refined = None
+                for med in dict.fromkeys((own, 5, 7)):
+                    refined = _refine_in_crop(g8, c, int(i), neg, cv2.aruco.ArucoDetector(d, fine), median_px=med)
+                    if refined is not None:
+                        break
                 found[int(i)] = refined if refined is not None else c
+                negative[int(i)] = neg
             if len(found) >= 4:
                 break
         if len(found) >= 4:
             break
     ids = sorted(found)
+    if with_negative:
+        return ids, [found[i] for i in ids], [negative[i] for i in ids]
     return ids, [found[i] for i in ids]
 
 
@@ -393,16 +410,16 @@ def register(image, manifest, points=None, *, refine: bool = True,
         hint_bed, hint_img = parse_points(points) if isinstance(points, str) else (
             np.asarray(points[0], float), np.asarray(points[1], float))
 
-    ids, corners = detect_markers(gray)
+    ids, corners, neg = detect_markers(gray, with_negative=True)
     used, bed_c, img_c = _match(manifest, ids, corners)
     mirrored = False
     if len(used) < 4 and manifest.fiducials:
         flipped = np.ascontiguousarray(gray[:, ::-1])
-        ids_m, corners_m = detect_markers(flipped)
+        ids_m, corners_m, neg_m = detect_markers(flipped, with_negative=True)
         used_m, bed_m, img_m = _match(manifest, ids_m, corners_m)
         if len(used_m) > len(used):
             mirrored = True
-            ids, used, bed_c = ids_m, used_m, bed_m
+            ids, used, bed_c, neg = ids_m, used_m, bed_m, neg_m
             # back to original image coordinates; the corner order reverses with the flip
             img_c = [np.column_stack([W - 1 - c[:, 0], c[:, 1]]) for c in img_m]
     method = None
@@ -468,7 +485,20 @@ def register(image, manifest, points=None, *, refine: bool = True,
         raise UserError(f"only {inside.mean():.0%} of the pattern's tracks fall inside the image with this "
                         "registration; check --points (x_mm,y_mm=u_px,v_px) or that the manifest matches")
     scale = float(np.median(Camera(H=H0, image_size=size).px_per_mm(lay_pts[::max(1, len(lay_pts) // 200)])))
-    polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, lay_n)
+    # the printed markers say it too: found in the negative image, their plastic is darker
+    # than the plate; believed over the tracks when those are unclear (a dense spiral's
+    # sides land on neighbours: clarity 0.1-0.5 on 600 dpi renders, and one render with 3
+    # markers took the gaps for beads, 0.3-0.5 mm "widths" on every station)
+    neg_used = [n for i, n in zip(ids, neg) if i in used]
+    marker_polarity = (-1.0 if all(neg_used) else 1.0) if neg_used and len(set(neg_used)) == 1 else None
+
+    def polarity_at(x):
+        pol, clear = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, lay_n)
+        if marker_polarity is not None and clear < POLARITY_CLEAR:
+            return marker_polarity, clear
+        return pol, clear
+
+    polarity, clarity = polarity_at(x)
 
     if refine:
         corners = (bed_pts, img_pts, ctr_pts) if method == "fiducials" else None
@@ -483,7 +513,7 @@ def register(image, manifest, points=None, *, refine: bool = True,
             x, track_score = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method)
         method += "+tracks"
         # Polarity again on the refined mapping (the hint start may have been too far off).
-        polarity, clarity = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, lay_n)
+        polarity, clarity = polarity_at(x)
     k1, k2 = mp.k(x)
     reg = Registration(H=mp.H(x) / mp.H(x)[2, 2],
                        distortion={"center_px": tuple(center), "f_px": f_px, "k1": float(k1), "k2": float(k2)},

@@ -78,3 +78,39 @@ def test_hints_that_miss_the_image_are_rejected():
     far = "20,20=90000,90000;80,20=91000,90000;80,45=91000,91000;20,45=90000,91000"
     with pytest.raises(UserError, match=r"only 0% of the pattern's tracks fall inside the image"):
         register(gray_of(r), man, points=far)
+
+
+@pytest.mark.parametrize("kind, polarity", [("flat", 1.0), ("flat-mirror-light", -1.0)])
+def test_the_markers_decide_the_polarity_when_the_tracks_cannot(kind, polarity, monkeypatch):
+    """On a dense spiral the tracks' polarity test is a coin toss (clarity 0.1-0.5 on the
+    600 dpi renders). Markers found in the negative image are darker than the plate: with
+    the tracks' test made unclear and wrong, the markers still give the right polarity, and
+    a clear tracks' test still wins over them."""
+    import measure.register as R
+    man, r = rendered(kind)
+    monkeypatch.setattr(R, "estimate_polarity", lambda *a: (-polarity, 0.1))
+    assert register(gray_of(r), man).polarity == polarity
+    monkeypatch.setattr(R, "estimate_polarity", lambda *a: (-polarity, 5.0))
+    assert register(gray_of(r), man, refine=False).polarity == -polarity
+
+
+def test_a_marker_whose_crop_fails_plain_is_refined_through_a_median(monkeypatch):
+    """The corners found at the search scale sit inside the printed border; a marker whose
+    full-resolution crop fails plain (strings, grain) is tried again through a median
+    instead of keeping them (a render whose two markers fell back: 13 % scale error)."""
+    import measure.register as R
+    man, r = rendered("flat")
+    g = gray_of(r)
+    ids, good = R.detect_markers(g)
+    orig = R._refine_in_crop
+    calls = []
+
+    def plain_fails(g8, approx, marker_id, negative, detector, median_px=0):
+        calls.append(median_px)
+        return None if median_px == 0 else orig(g8, approx, marker_id, negative, detector, median_px=median_px)
+
+    monkeypatch.setattr(R, "_refine_in_crop", plain_fails)
+    ids2, corners = R.detect_markers(g)
+    assert ids2 == ids and 5 in calls
+    for a, b in zip(good, corners):
+        assert np.abs(a - b).max() < 0.5                 # px: refined, not the search corners
