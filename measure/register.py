@@ -487,10 +487,9 @@ def register(image, manifest, points=None, *, refine: bool = True,
     scale = float(np.median(Camera(H=H0, image_size=size).px_per_mm(lay_pts[::max(1, len(lay_pts) // 200)])))
     # the printed markers say it too: found in the negative image, their plastic is darker
     # than the plate; believed over the tracks when those are unclear (a dense spiral's
-    # sides land on neighbours: clarity 0.1-0.5 on 600 dpi renders, and one render with 3
-    # markers took the gaps for beads, 0.3-0.5 mm "widths" on every station)
-    neg_used = [n for i, n in zip(ids, neg) if i in used]
-    marker_polarity = (-1.0 if all(neg_used) else 1.0) if neg_used and len(set(neg_used)) == 1 else None
+    # sides land on neighbours: clarity 0.1-0.5 on the 600 dpi renders, a coin toss)
+    neg_used = {n for i, n in zip(ids, neg) if i in used}
+    marker_polarity = (-1.0 if neg_used.pop() else 1.0) if len(neg_used) == 1 else None
 
     def polarity_at(x):
         pol, clear = estimate_polarity(gray, lambda p: mp.project(x, p), lay_pts, lay_w, lay_n)
