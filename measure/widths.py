@@ -62,15 +62,15 @@ OUTLIER_FACTOR = 4.0
 #: so the rule flagged 1,009 stations of sd 7-18 um (12 % of the direct-drive scene, 10 %
 #: of the Bowden one) whose widths erred 9.6 um RMS (8.9 for the valid ones) with |error|
 #: > 3 sd on 0.8 %: honest widths, not contaminated profiles (those misfit: the residual
-#: rule stays). Kept up to 15 um: valid 87.7 -> 95.1 %, RMS 8.91 -> 8.73 um.
+#: rule stays). Kept up to 15 um.
 SD_OUTLIER_MIN_MM = 0.015
 #: A valid station is flagged "isolated" when fewer than ISOLATED_FRACTION of its track's
 #: stations within +-ISOLATED_HALF_MM (mm) are valid among those valid or flagged for a bad
 #: profile (:func:`isolated`). End-to-end render (seed 7, orange beads over light-grey
 #: plate logos): 5 stations 0.3-0.5 mm too wide, in stretches where 2 of 15 stations
 #: passed, took the fit to chi2_nu 61 and Kb 24x the truth; flagged, the scan's RMS error
-#: fell 24.9 -> 5.1 um (flatbed, every phenomenon, direct drive: 8.8 -> 5.4 um) for 1-2 %
-#: of the stations.
+#: fell 24.9 -> 6.0 um (on the saved flatbed scene with every phenomenon, direct drive:
+#: 8.8 -> 5.4 um) for 1-2 % of the stations.
 ISOLATED_HALF_MM = 0.75
 ISOLATED_FRACTION = 0.4
 CONTAMINATED_FLAGS = ("fit", "glare", "blob")
@@ -280,7 +280,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w))
 
 
-def isolated(track, s_mm, flag, half_mm: float = None, fraction: float = None):
+def isolated(track, s_mm, flag, half_mm: float | None = None, fraction: float | None = None):
     """Valid stations (flag "") in a stretch of contaminated ones (bool array): fewer than
     ``fraction`` (ISOLATED_FRACTION) of the other stations of the same track within
     +-``half_mm`` (ISOLATED_HALF_MM) are valid, counting only valid ones and those flagged
