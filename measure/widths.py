@@ -93,6 +93,9 @@ STREAK_F = 30.0
 #: 0.91-0.95; edge-model misfit on translucent or phone renders 0.03-0.49).
 STREAK_MIN_STATIONS = 20
 STREAK_COHERENCE = 0.6
+#: On scans with >= this x STREAK_MIN_STATIONS fitted stations, one in this many is tried
+#: for a streak first (:func:`_with_glare_streaks`).
+STREAK_SCREEN_EVERY = 8
 #: Each station's profile averages this many lines spread over this length (mm) along the
 #: track: the stations' spacing, so that every pixel row along a track is used once.
 STRIP_LINES = 5
@@ -387,12 +390,45 @@ def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals,
 def _with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True):
     """The plain fit, with stations where a glare streak explains significantly more
     (F > STREAK_F, module docstring) on the side that faces the scan's light replaced by
-    the streak fit; and which were. normals (N, 2): profile direction (bed frame)."""
+    the streak fit; and which were. normals (N, 2): profile direction (bed frame).
+
+    The streak fits (two sides per station) cost more than the rest of the measurement:
+    on large scans one station in STREAK_SCREEN_EVERY is tried first, and when those show
+    no coherent light (under half the stations or half the coherence the full test needs)
+    the scan has no glare and the rest are not tried."""
     n = len(t)
     streak = np.zeros(n, bool)
     idx = np.flatnonzero(fit.ok)
     if len(idx) == 0:
         return fit, streak
+    k = STREAK_SCREEN_EVERY
+    if len(idx) >= k * STREAK_MIN_STATIONS:
+        sub = idx[::k]
+        use, _, toward = _streak_test(t, y, fit, wts, height_mm, normals, sub, fixed_s)
+        light = toward[use].mean(axis=0) if use.any() else np.zeros(2)
+        if use.sum() < 0.5 * STREAK_MIN_STATIONS / k or np.hypot(*light) < 0.5 * STREAK_COHERENCE:
+            return fit, streak
+    use, best, toward = _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s)
+    # One light lights one flank: the streak's side, as a bed direction (side x normal),
+    # points the same way at every station. Edge-model misfit that merely looks like a
+    # streak (translucent edges: 6 % of stations passed the F test, 57 % of those then
+    # outside 3 sd) picks its side at random.
+    light = toward[use].mean(axis=0) if use.sum() >= STREAK_MIN_STATIONS else np.zeros(2)
+    if np.hypot(*light) < STREAK_COHERENCE:
+        use[:] = False
+    else:
+        use &= toward @ light > 0
+    streak[idx[use]] = True
+    params, sd, rms = fit.params.copy(), fit.sd.copy(), fit.rms.copy()
+    params[idx[use]] = best.params[use, :6]
+    sd[idx[use]] = best.sd[use, :6]
+    rms[idx[use]] = best.rms[use]
+    return edges.ProfileFit(params, sd, rms, fit.ok), streak
+
+
+def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s):
+    """For the stations ``idx``: whether a streak passes the F test, the better side's fit,
+    and that side as a bed direction (side x normal)."""
     m_eff = wts[idx].sum(axis=1)
     k0 = 5 if fixed_s else 6
     rss0 = fit.rms[idx] ** 2 * np.maximum(m_eff - k0, 1)
@@ -411,22 +447,7 @@ def _with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True
     with np.errstate(invalid="ignore"):
         F = 0.5 * (rss0 - best_rss) / np.maximum(best_rss / np.maximum(m_eff - k0 - 2, 1), 1e-300)
     use = np.isfinite(F) & (F > STREAK_F) & (best.params[:, 6] > 0)
-    # One light lights one flank: the streak's side, as a bed direction (side x normal),
-    # points the same way at every station. Edge-model misfit that merely looks like a
-    # streak (translucent edges: 6 % of stations passed the F test, 57 % of those then
-    # outside 3 sd) picks its side at random.
-    toward = best_side[:, None] * normals[idx]
-    light = toward[use].mean(axis=0) if use.sum() >= STREAK_MIN_STATIONS else np.zeros(2)
-    if np.hypot(*light) < STREAK_COHERENCE:
-        use[:] = False
-    else:
-        use &= toward @ light > 0
-    streak[idx[use]] = True
-    params, sd, rms = fit.params.copy(), fit.sd.copy(), fit.rms.copy()
-    params[idx[use]] = best.params[use, :6]
-    sd[idx[use]] = best.sd[use, :6]
-    rms[idx[use]] = best.rms[use]
-    return edges.ProfileFit(params, sd, rms, fit.ok), streak
+    return use, best, best_side[:, None] * normals[idx]
 
 
 def _at_end(manifest, smp, w_meas, w_ref):
