@@ -81,6 +81,8 @@ class ModelFit:
     loglik = property(lambda self: self.map.loglik)
     bic = property(lambda self: self.map.bic)
     chi2_nu = property(lambda self: self.map.chi2_nu)
+    #: the misfit the trust verdict judges (fit/result.py: the bead's own wobble allowed)
+    chi2_nu_bead = property(lambda self: self.map.chi2_nu_bead)
     rms_mm = property(lambda self: self.map.rms_mm)
     names = property(lambda self: list(self.map.param_names))
 
@@ -130,9 +132,15 @@ class ModelFit:
         return {n: (p.ci68[0], p.median, p.ci68[1]) for n, p in self.full.params.items()}
 
 
-def _problem(model, scan: ScanData, noise: NoiseOptions | None = None) -> JointProblem:
+def _problem(model, scan: ScanData, noise: NoiseOptions | None = None,
+             priors: dict | None = None) -> JointProblem:
+    """The posterior of ``model`` on ``scan``; ``priors``: overrides (fit.priors format) of
+    the parameters this model has (others are ignored: a search over models passes the
+    same overrides to every model it tries)."""
     with np.errstate(divide="ignore"):
-        return make_problem(model, scan, noise)
+        pb = make_problem(model, scan, noise)
+        mine = {k: v for k, v in (priors or {}).items() if k in pb.param_names}
+        return make_problem(model, scan, noise, mine) if mine else pb
 
 
 def _absent(prior, name: str, default: float) -> float:
@@ -183,8 +191,9 @@ def _zpost(problem: JointProblem, r: MapResult) -> float:
 
 def fit_model(model, scan: ScanData, spec: str = "", warm: list[ModelFit] = (), n_random: int = 24,
               n_polish: int = 3, seed: int = 0, noise: NoiseOptions | None = None,
-              problem: JointProblem | None = None) -> ModelFit:
+              problem: JointProblem | None = None, priors: dict | None = None) -> ModelFit:
     """MAP fit of ``model`` to ``scan`` by :func:`fit.sampler.fit_map`, from several starts.
+    ``priors``: prior overrides of the parameters the model has (:func:`_problem`).
 
     Starts: warm starts from the earlier fits ``warm`` (:func:`warm_starts`; the first one
     is always polished) or the model defaults, plus ``n_random`` draws from the priors of
@@ -197,7 +206,7 @@ def fit_model(model, scan: ScanData, spec: str = "", warm: list[ModelFit] = (), 
     a start that does not beat it rarely leads anywhere better; this keeps a candidate
     fit to about one optimisation).
     """
-    problem = problem or _problem(model, scan, noise)
+    problem = problem or _problem(model, scan, noise, priors)
     spec = spec or str(getattr(model, "spec", ""))
     starts, free = warm_starts(problem, list(warm))
     base = starts or [problem.default_theta()]

@@ -142,7 +142,7 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
              confirm_top: int = 0, seed: int = 0, n_null: int = 200, progress: bool = False,
              base: ModelFit | None = None, command_prefix: str = "calib fit WIDTHS --manifest M",
              effects_arg: str = "", n_random: int = 24, n_polish: int = 3,
-             max_steps: int = 20000) -> Diagnosis:
+             max_steps: int = 20000, priors: dict | None = None) -> Diagnosis:
     """Diagnose ``spec`` on ``scan`` (:func:`fit.compare.observe`).
 
     build(spec) -> Model (e.g. ``lambda s: build_model(s, profile, extra_effects)``);
@@ -150,12 +150,13 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
     effects. ``n_random``/``n_polish``: starts screened/optimised per MAP fit
     (:func:`fit.compare.fit_model`). ``confirm_top`` > 0 runs a full fit (emcee to
     convergence, at most ``max_steps`` steps, + PSIS-LOO) of the base model and of that
-    many best candidates.
+    many best candidates. ``priors``: prior overrides (fit.priors format), applied to every
+    model that has the parameter (e.g. the scan_bias prior from the measurement).
     """
     from calib.progress import progress as bar
 
     model = build(spec)
-    fit_kw = dict(n_random=n_random, n_polish=n_polish, seed=seed)
+    fit_kw = dict(n_random=n_random, n_polish=n_polish, seed=seed, priors=priors)
     if base is None:
         base = fit_model(model, scan, spec, **fit_kw)
     smp, o = scan.samples, scan.order

@@ -62,6 +62,15 @@ def prior_overrides(states: list[dict], param_names) -> dict[str, dict]:
     return out
 
 
+def auto_start(scan: str, cal: dict | None) -> tuple[str, dict[str, dict]]:
+    """(base model, prior overrides) where ``--model auto`` starts on a scan whose
+    measurement block is ``cal``: ``pa+scan_bias`` with the prior above when the widths are
+    apparent widths (its offset would otherwise be read as back-pressure or flow), else ``pa``."""
+    if cal is None or cal.get("applied"):
+        return "pa", {}
+    return "pa+scan_bias", prior_overrides([{"scan": scan, "calibration": cal}], ["scan_bias.b0_mm"])
+
+
 def notes(states: list[dict], has_scan_bias: bool) -> list[str]:
     """One plain sentence per scan whose widths are apparent widths."""
     out = []

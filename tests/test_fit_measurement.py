@@ -51,3 +51,45 @@ def test_apparent_widths_without_scan_bias_are_said_and_a_caution(tmp_path, caps
            "diagnostics": {"measurement": {"notes": notes}}}
     v = assess(doc)
     assert v.trustworthy and any("apparent widths" in c for c in v.cautions)
+
+
+@pytest.mark.parametrize("cal,base", [(UNCAL, "pa+scan_bias"), (CAL, "pa"), (None, "pa")])
+def test_model_auto_starts_with_scan_bias_on_apparent_widths(tmp_path, monkeypatch, cal, base):
+    """--model auto: an unknown offset of tens of um would be read as back-pressure, so the
+    chain starts with scan_bias (and the prior `calib fit` gives it) when the widths are
+    apparent; the user's priors reach every model of the search that has the parameter."""
+    import fit.auto
+    from fit.auto import AutoResult
+
+    seen = {}
+
+    def fake_auto(scan, build, library, user=(), base_spec="pa", priors=None, **kw):
+        seen.update(base=base_spec, priors=priors)
+        return AutoResult(base_spec, stop="(test)")
+    monkeypatch.setattr(fit.auto, "auto_model", fake_auto)
+    (tmp_path / "p.toml").write_text('["thermal.a"]\nprior = "normal"\nmu = 0.0\nsd = 0.01\n')
+    res, problem = run_fit(scan_with_summary(tmp_path, cal), "auto", map_only=True, progress=False,
+                           priors=str(tmp_path / "p.toml"))
+    assert seen["base"] == base and res.model == base
+    want = {"thermal.a"} | ({"scan_bias.b0_mm"} if base != "pa" else set())
+    assert set(seen["priors"]) == want
+    if base != "pa":
+        assert seen["priors"]["scan_bias.b0_mm"]["sd"] == measurement.UNCALIBRATED_SD_MM
+        assert _prior(problem, "scan_bias.b0_mm").sd == measurement.UNCALIBRATED_SD_MM
+    # a prior of an effect the search did not choose does not stop the fit of the one it did
+    assert "thermal.a" not in problem.param_names
+
+
+def test_search_priors_apply_only_to_models_that_have_the_parameter():
+    from fit.compare import _problem
+    from fit.hidden import make_case
+    from fit.compare import observe
+    from fit.model import build_model
+
+    c = make_case("gear_slip", seed=0, ds_mm=0.5)
+    scan = observe(c.manifest, c.table)
+    pri = {"scan_bias.b0_mm": {"prior": "normal", "mu": 0.0, "sd": 0.03}}
+    with_sb = _problem(build_model("pa+scan_bias", c.manifest.printer), scan, priors=pri)
+    without = _problem(build_model("pa", c.manifest.printer), scan, priors=pri)
+    assert _prior(with_sb, "scan_bias.b0_mm").sd == 0.03
+    assert "scan_bias.b0_mm" not in without.param_names

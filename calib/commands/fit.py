@@ -30,7 +30,8 @@ def add_parser(sub):
     p.add_argument("--data", nargs=2, action="append", metavar=("WIDTHS", "MANIFEST"), default=[],
                    help="a widths/manifest pair; repeat for a joint fit")
     p.add_argument("--model", default="pa",
-                   help="effects joined by '+' (default: pa), or 'auto': start from pa and add "
+                   help="effects joined by '+' (default: pa), or 'auto': start from pa (pa+scan_bias "
+                        "when `calib measure` says the widths are apparent widths) and add "
                         "the effect `calib diagnose` names while it lowers BIC by >= 10 and the "
                         "reduced chi-square falls; the chain is printed")
     p.add_argument("--priors", help="TOML file overriding parameter priors (see fit/priors.py)")
@@ -92,12 +93,15 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     auto = None
     if model_spec == "auto":
         auto = choose_model(pairs, effects, extra, seed=seed, progress=progress, chi2_max=chi2_max,
-                            missing=missing)
+                            missing=missing, priors=priors)
         model_spec = auto.model
     from fit import measurement
 
     data = FitData.load(pairs)
     user = load_priors_file(priors) if priors else {}
+    if auto is not None:        # priors of effects the search did not choose do not apply
+        names = make_problem(model_spec, data, None, None, extra).param_names
+        user = {k: v for k, v in user.items() if k in names}
     noise = NoiseOptions(ar1=ar1, student_nu=student_nu, missing=missing)
     problem = make_problem(model_spec, data, noise, user or None, extra)
     # what `calib measure` said of its widths: scan_bias priors, and a caution (fit/measurement.py)
@@ -164,13 +168,20 @@ def missing_text(info: dict) -> str:
             f"(of {info['on_printed_tracks']} on printed tracks)")
 
 
-def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=None, missing=True):
+def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=None, missing=True,
+                 priors=None):
     """``--model auto`` (fit/auto.py) on the one scan of ``pairs``; prints the chain.
-    ``missing`` False (--ignore-missing): the search does not fit the missing stations either."""
+    ``missing`` False (--ignore-missing): the search does not fit the missing stations either.
+    The chain starts from ``pa``, or from ``pa+scan_bias`` when `calib measure` said the
+    widths are apparent widths (fit/measurement.py: an unknown offset of tens of um passes
+    for back-pressure or flow otherwise), with the same scan_bias prior `calib fit` uses;
+    ``priors``: the user's priors file, applied to every model that has the parameter."""
+    from fit import measurement
     from fit.auto import auto_model
     from fit.compare import observe
     from fit.effects import REGISTRY
     from fit.model import build_model
+    from fit.priors import load_priors_file
     from fit.trust import CHI2_NU_MAX
     from measure.table import WidthTable
     from patterns.manifest import Manifest
@@ -183,9 +194,12 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     scan = observe(manifest, WidthTable.load(widths))
     if not missing:
         scan.missing_idx = scan.missing_idx[:0]
+    base, pri = measurement.auto_start(scan.name, measurement.load_calibration(widths))
+    pri.update(load_priors_file(priors) if priors else {})
     res = auto_model(scan, lambda s: build_model(s, manifest.printer, extra_effects=extra),
                      list(REGISTRY), [c.name for c in extra], seed=seed, progress=progress,
-                     chi2_max=CHI2_NU_MAX if chi2_max is None else chi2_max)
+                     chi2_max=CHI2_NU_MAX if chi2_max is None else chi2_max, base_spec=base,
+                     priors=pri)
     print("model search (--model auto):")
     for line in res.lines():
         print(f"  {line}")
