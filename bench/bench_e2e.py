@@ -10,7 +10,8 @@ measure`: markers, widths, the apparent-width calibration on the prime line) and
 on the test track. Truth = the virtual printer's parameters.
 
 Rows, over ``CALIB_BENCH_E2E_SEEDS`` seeds (default 40; ``CALIB_BENCH_E2E_BP_SEEDS`` for the
-back-pressure truth, default the same: its fits take ~5 min each; 2 processes):
+back-pressure truth, default the same: its fits take ~5 min each; ``CALIB_BENCH_E2E_PHONE_SEEDS``
+for the second scene, the `pa` print photographed by a 12 MP phone at 35 deg; 2 processes):
 - the share of seeds whose 90 % interval holds the truth, for tau of `pa+spread(+scan_bias)`
   and for tau, Kb, w_sat of `pa+backpressure+spread+scan_bias` (80-97 %; scan_bias with the
   prior `calib fit` gives it from the measurement's calibration; binomial sd at 90 % with 40 seeds
@@ -45,28 +46,42 @@ CASES = {
     "pa+backpressure": ({"pa.tau_s": 0.043, "backpressure.kb": 0.2, "backpressure.w_sat_mm": 0.8},
                         {"speeds_mm_s": (20.0,), "n_steps": 6, "step_s": (3.0,), "widths_mm": (0.35, 0.6, 0.8)},
                         ("pa+backpressure+spread+scan_bias",)),
+    # A second scene, so coverage is not a property of one camera: the same `pa` print
+    # photographed by a 12 MP phone at 35 deg (JPEG, lens distortion; every phenomenon)
+    "pa, phone": ({"pa.tau_s": 0.043},
+                  {"speeds_mm_s": (20.0,), "n_steps": 6, "step_s": (3.0,), "widths_mm": (0.35, 0.8)},
+                  ("pa+spread+scan_bias",)),
 }
+
+
+def _truth_camera(case: str) -> tuple[str, str]:
+    """(truth spec, camera) of a CASES key: "pa" or "pa, phone"."""
+    spec, _, cam = case.partition(",")
+    return spec.strip(), cam.strip() or "flatbed"
 
 
 def _log(msg):
     print(f"  bench_e2e: {msg}", file=sys.stderr, flush=True)
 
 
-def measured_scan(spec: str, seed: int, realism: str = "all"):
-    """(ScanData of the measured test track, manifest cut to it, measurement figures)."""
+def measured_scan(case: str, seed: int, realism: str = "all"):
+    """(ScanData of the measured test track, manifest cut to it, measurement figures) of a
+    CASES key (truth spec, and camera after a comma)."""
     from calib.commands.simulate import simulate_scan, write_image
     from fit.data import scan_from_table
     from measure.pipeline import measure_scan
     from patterns import spiral_step
     from patterns.profile import load_profile
 
-    values, spiral, _ = CASES[spec]
+    values, spiral, _ = CASES[case]
+    spec, camera = _truth_camera(case)
     prof = load_profile(PROFILE)
     _, man = spiral_step.generate(prof, **spiral)
-    rendered, _ = simulate_scan(man, spec, values, "flatbed", profile=prof, dpi=600.0, seed=seed,
-                                realism=realism)
+    rendered, _ = simulate_scan(man, spec, values, camera, profile=prof, dpi=600.0, seed=seed,
+                                realism=realism, tilt_deg=35.0)
     with tempfile.TemporaryDirectory() as d:
-        res = measure_scan(write_image(os.path.join(d, "scan.png"), rendered), man)
+        res = measure_scan(write_image(os.path.join(d, "scan.jpg" if rendered.encoded else "scan.png"),
+                                       rendered), man)
     test = [t.id for t in man.tracks if t.kind == "test"]
     sel = np.isin(res.table.track, test)
     tb, tr = res.table.subset(sel), rendered.table.subset(sel)
@@ -150,8 +165,10 @@ def _run(jobs, workers):
 def run() -> list[Row]:
     n = int(os.environ.get("CALIB_BENCH_E2E_SEEDS", "40"))
     n_bp = int(os.environ.get("CALIB_BENCH_E2E_BP_SEEDS", str(n)))
+    n_ph = int(os.environ.get("CALIB_BENCH_E2E_PHONE_SEEDS", str(n)))
     # the slow back-pressure fits first, so the two workers finish together
-    jobs = [("pa+backpressure", s) for s in range(n_bp)] + [("pa", s) for s in range(n)]
+    jobs = [("pa+backpressure", s) for s in range(n_bp)] + [("pa, phone", s) for s in range(n_ph)] + \
+        [("pa", s) for s in range(n)]
     res = _run(jobs, workers=2)
     rows: list[Row] = []
     for spec, (values, _, models) in CASES.items():
