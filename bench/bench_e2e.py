@@ -99,10 +99,10 @@ def measured_scan(case: str, seed: int, realism: str = "all"):
 
 def _one(job):
     from fit.model import build_model
-    from fit.nuisance import nuisance_check
+    from fit.nuisance import nuisance_check, structure_check
     from fit.sampler import fit_mcmc, make_problem
     from fit.measurement import prior_overrides
-    from fit.trust import assess, residual_structure
+    from fit.trust import assess, is_structured, residual_structure
     from patterns.profile import load_profile
 
     spec, seed = job
@@ -128,15 +128,18 @@ def _one(job):
             pb = problem(m)
             r = fit_mcmc(pb, seed=seed, progress=False, n_loo_draws=50)
             # the verdict `calib fit` would print (fit/trust.py): is a miss flagged?
-            r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
-            r.diagnostics["nuisance"] = nuisance_check(
-                problem, m, r.map.values, r.map.bic,
-                {n: p.ci95 for n, p in r.params.items()}, seed=seed)
+            rs = r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
+            ci95 = {n: p.ci95 for n, p in r.params.items()}
+            r.diagnostics["nuisance"] = nuisance_check(problem, m, r.map.values, r.map.bic, ci95, seed=seed)
+            if is_structured(rs):
+                rs["refits"] = structure_check(problem, m, rs["covariate"], r.map.values, r.map.bic, ci95,
+                                               seed=seed)
             v = assess(r.to_json())
         except Exception as exc:
             out["fits"][m] = {"error": str(exc)}
             continue
         out["fits"][m] = {"converged": bool(r.converged), "trustworthy": bool(v.trustworthy),
+                          "why": "; ".join(p[:70] for p in v.problems),
                           "chi2_nu_bead": float(r.map.chi2_nu_bead),
                           **{n: (r.params[n].median, *r.params[n].ci90) for n in values}}
     out["time_s"] = time.perf_counter() - t0
@@ -156,7 +159,7 @@ def _run(jobs, workers):
                 f"{m}: " + (f["error"][:60] if "error" in f else ", ".join(
                     f"{n.split('.')[-1]} {v[0]:.4g} [{v[1]:.4g}, {v[2]:.4g}]" for n, v in f.items()
                     if isinstance(v, tuple)) + f" (chi2_nu_bead {f['chi2_nu_bead']:.2f}, "
-                    + ("trusted)" if f["trustworthy"] else "NOT TRUSTWORTHY)"))
+                    + ("trusted)" if f["trustworthy"] else f"NOT TRUSTWORTHY: {f['why']})"))
                 for m, f in r["fits"].items()) or r.get("error", "")
             _log(f"{i + 1}/{len(jobs)} {r['spec']} seed {r['seed']} ({time.perf_counter() - t0:.0f} s) {fits}")
     return res

@@ -29,8 +29,15 @@ from fit.covariates import CovariateScore, Covariates, compute_covariates, score
 #: Effects never proposed as "missing": firmware_pa is a known input transform (it is
 #: what the firmware was told to do, read from the G-code), not physics to discover;
 #: scan_bias is the measurement's own calibration error, which a user adds to widen the
-#: intervals (it would soak up any static width-dependent signal of the physics).
-NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias"})
+#: intervals (it would soak up any static width-dependent signal of the physics); the
+#: view effects are the picture's (they would soak up bed tilt and heading).
+NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias", "view_xy", "view_heading"})
+#: Nuisances of the picture (fit/effects.py ViewXY, ViewHeading) the trust verdict's
+#: structure check adds for a geometric covariate (fit/nuisance.py structure_check).
+VIEW_COVARIATES: dict[str, tuple[str, ...]] = {
+    "view_xy": ("x_mm", "y_mm", "r_mm"),
+    "view_heading": ("heading_rad",),
+}
 
 #: The covariates each library effect leaves its mark on (for the verdict's evidence).
 EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {

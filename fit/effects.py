@@ -552,6 +552,62 @@ class ScanBias(Effect):
         return w + p["b0_mm"] + p["b1"] * (w - self.W_REF_MM)
 
 
+def _bed_uv(ctx):
+    """Station positions scaled to [-1, 1] about the stations' centre: (x - xc, y - yc) / R,
+    R = half the larger extent of the stations (mm / mm)."""
+    xc, yc = ctx.center_xy_mm
+    dx, dy = ctx.s_x_mm - xc, ctx.s_y_mm - yc
+    r = max(float(np.max(np.abs(dx), initial=0.0)), float(np.max(np.abs(dy), initial=0.0)), 1e-9)
+    return dx / r, dy / r
+
+
+@register_effect
+class ViewXY(Effect):
+    """The picture's apparent width varying over the bed, a measurement nuisance (not
+    physics, never proposed by ``diagnose``): on a phone photo taken at an angle the
+    resolution and the blur change across the picture, and with them the edge offset of a
+    rounded, translucent bead:
+
+        w_measured = w + ax u + ay v + axx u^2 + ayy v^2 + axy u v        (mm)
+
+    u, v: :func:`_bed_uv`. The trust verdict's structure check (fit/nuisance.py) adds it
+    to ask whether the values depend on a width pattern over x, y or r; all zero: absent.
+    """
+
+    name = "view_xy"
+    params = tuple(Param(n, "mm", 0.0, -0.1, 0.1, "uniform", doc=f"apparent width term in {t}")
+                   for n, t in (("ax_mm", "u"), ("ay_mm", "v"), ("axx_mm", "u^2"), ("ayy_mm", "v^2"),
+                                ("axy_mm", "u v")))
+
+    def width(self, ctx, w, p):
+        u, v = _bed_uv(ctx)
+        return (w + p["ax_mm"] * u + p["ay_mm"] * v + p["axx_mm"] * u * u + p["ayy_mm"] * v * v
+                + p["axy_mm"] * u * v)
+
+
+@register_effect
+class ViewHeading(Effect):
+    """The picture's apparent width depending on the bead's direction, a measurement
+    nuisance (never proposed by ``diagnose``): a photo at an angle foreshortens one bed
+    direction (blur and resolution differ along and across it: second harmonic of the
+    heading theta), and light from one side shades one flank (first harmonic):
+
+        w_measured = w + a1 cos(theta) + b1 sin(theta) + a2 cos(2 theta) + b2 sin(2 theta)   (mm)
+
+    The physical ``heading`` effect has the first harmonic only. All zero: absent.
+    """
+
+    name = "view_heading"
+    params = tuple(Param(n, "mm", 0.0, -0.1, 0.1, "uniform", doc=f"apparent width term in {t}")
+                   for n, t in (("a1_mm", "cos theta"), ("b1_mm", "sin theta"), ("a2_mm", "cos 2 theta"),
+                                ("b2_mm", "sin 2 theta")))
+
+    def width(self, ctx, w, p):
+        th = ctx.s_heading_rad
+        return (w + p["a1_mm"] * np.cos(th) + p["b1_mm"] * np.sin(th) + p["a2_mm"] * np.cos(2 * th)
+                + p["b2_mm"] * np.sin(2 * th))
+
+
 # -----------------------------------------------------------------------------------
 # User effects
 

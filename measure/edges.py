@@ -258,7 +258,8 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
 
 def _safe_inv(A):
     out = np.full_like(A, np.nan)
-    det_ok = np.abs(np.linalg.det(A)) > 1e-300
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):     # singular: said by det_ok
+        det_ok = np.abs(np.linalg.det(A)) > 1e-300
     if det_ok.any():
         try:
             out[det_ok] = np.linalg.inv(A[det_ok])

@@ -11,7 +11,8 @@ CSV columns (README "Widths CSV"):
     valid        1 if the sample may be fitted, 0 if not
     flag         empty, or the reason the sample is not valid (crossing, label, blob,
                  missing, glare, edge, fit, neighbour, end, isolated: a valid-looking
-                 station among failed fits, ...)
+                 station among failed fits, oblique: what was found runs across the
+                 track, a string or another line, ...)
 """
 from __future__ import annotations
 

@@ -47,3 +47,39 @@ def test_a_spreading_bead_makes_pa_alone_untrustworthy_and_a_plain_one_does_not(
     assert plain["delta_bic"] < DECISIVE_BIC or not plain["moved"]
     doc["diagnostics"]["nuisance"] = [plain]
     assert assess(doc).trustworthy
+
+
+def test_structure_that_an_effect_explains_without_moving_the_value_is_a_caution():
+    """The residual-structure check asks the effects that depend on its covariate
+    and the picture's pattern in it (fit/nuisance.py structure_check). A width that follows
+    the heading (truth pa+heading, as the apparent width does on a tilted phone photo) leaves `pa`'s residuals lining up
+    with heading_rad; `heading` explains it decisively and tau stays inside its interval:
+    trusted, with a caution. Had it moved tau, or explained nothing, it stays a problem."""
+    from fit.nuisance import structure_check
+    from fit.trust import is_structured, residual_structure
+
+    sc = _scan("pa+heading", {"pa.tau_s": 0.043, "heading.a_mm": 0.012, "heading.b_mm": -0.008}, 0)
+    pb = make_problem(build_model("pa", PROF), sc)
+    m = fit_map(pb, seed=0, global_search=True)
+    sd = np.sqrt(np.diag(m.cov))
+    ci95 = {n: (v - 1.96 * s, v + 1.96 * s) for n, v, s in zip(m.param_names, m.theta, sd)}
+    assert ci95["pa.tau_s"][0] <= 0.043 <= ci95["pa.tau_s"][1]
+    rs = residual_structure(pb, m.theta)
+    assert is_structured(rs) and rs["covariate"] == "heading_rad"
+    rs["refits"] = structure_check(lambda spec: make_problem(build_model(spec, PROF), sc), "pa", rs["covariate"],
+                                   m.values, m.bic, ci95)
+    # the physical effect of that covariate, and the picture's own pattern in it
+    assert [r["effect"] for r in rs["refits"]] == ["heading", "view_heading"]
+    assert rs["refits"][0]["delta_bic"] >= DECISIVE_BIC and not any(r["moved"] for r in rs["refits"])
+    doc = {"converged": True, "information": {"chi2_nu": 1.0, "chi2_nu_bead": 1.0, "n_obs": 1000},
+           "params": {}, "priors": {}, "diagnostics": {"residual_structure": rs}}
+    v = assess(doc)
+    assert v.trustworthy and any("heading_rad" in c and "do not depend" in c for c in v.cautions)
+    rs["refits"][0]["moved"] = {"pa.tau_s": [0.043, 0.051]}
+    v = assess(doc)
+    assert not v.trustworthy and "pa+heading" in v.problems[0] and "0.051" in v.problems[0]
+    for r in rs["refits"]:                                                # explains nothing
+        r["moved"], r["delta_bic"] = {}, 3.0
+    assert not assess(doc).trustworthy
+    rs.pop("refits")                                                      # nothing to ask
+    assert not assess(doc).trustworthy

@@ -134,15 +134,20 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     flows = tested_flow_range(problem)
     if flows:
         res.derived["tested_flow_mm3_s"] = flows
-    from fit.trust import assess, residual_structure
+    from fit.trust import assess, is_structured, residual_structure
 
-    res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
+    rs = res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
     if len(data.scans) == 1:    # a joint fit's per-scan parameters make the refit ambiguous; skipped
-        from fit.nuisance import nuisance_check
+        from fit.nuisance import nuisance_check, structure_check
 
-        res.diagnostics["nuisance"] = nuisance_check(
-            lambda spec: make_problem(spec, data, noise, {**cal, **user} or None, extra), model_spec,
-            res.map.values, res.map.bic, {n: p.ci95 for n, p in res.params.items()}, seed=seed)
+        def extended(spec):
+            return make_problem(spec, data, noise, {**cal, **user} or None, extra)
+        ci95 = {n: p.ci95 for n, p in res.params.items()}
+        res.diagnostics["nuisance"] = nuisance_check(extended, model_spec, res.map.values, res.map.bic,
+                                                     ci95, seed=seed)
+        if is_structured(rs):
+            rs["refits"] = structure_check(extended, model_spec, rs["covariate"], res.map.values,
+                                           res.map.bic, ci95, seed=seed)
     res.diagnostics["measurement"] = {"scans": states, "notes": meas_notes,
                                       "scan_bias_priors": cal}
     res.diagnostics["missing_stations"] = missing_info(problem)
