@@ -65,15 +65,21 @@ def reference_tau(values, man) -> tuple[float, float]:
 def _fit(case, seed):
     from fit.model import build_model
     from fit.sampler import fit_map, fit_mcmc, make_problem
-    from fit.trust import assess, residual_structure
+    from fit.nuisance import structure_check
+    from fit.trust import assess, is_structured, residual_structure
     from patterns.profile import load_profile
 
     label, spec, values, model, spiral, mis = case
     _, sc, man = make_data("direct_drive", spec, values, seed, noise=NOISE, **spiral)
-    pb = make_problem(build_model(model, load_profile("direct_drive")), sc)
+    prof = load_profile("direct_drive")
+    pb = make_problem(build_model(model, prof), sc)
     r = fit_mcmc(pb, map_result=fit_map(pb, seed=seed, global_search=True), seed=seed,
                  progress=False, max_steps=8000, n_loo_draws=100)
-    r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta)
+    rs = r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta)
+    if is_structured(rs):       # as `calib fit` asks it: do the values depend on it?
+        rs["refits"] = structure_check(lambda s: make_problem(build_model(s, prof), sc), model, rs["covariate"],
+                                       r.map.values, r.map.bic, {n: p.ci95 for n, p in r.params.items()},
+                                       seed=seed)
     v = assess(r.to_json())
     lo, hi = r.params["pa.tau_s"].ci95
     t_lo, t_hi = reference_tau(values, man)
