@@ -30,7 +30,7 @@ Problems
   (p 0.005); well-specified fits score <= 0.03 (bench/bench_trust.py). Unless the library
   effects that depend on that covariate were refitted (fit/nuisance.py structure_check)
   and one explains it decisively (Delta BIC >= 10) while none of those moves a value
-  outside its 95 % interval: then a caution (the values do not depend on it). On 12 MP
+  outside its 95 % interval (by more than half its width): then a caution (the values do not depend on it). On 12 MP
   phone renders at 35 deg the apparent width follows heading, x or y, and 13 of 24 fits
   whose 90 % interval held tau were refused before.
 - ``nuisance``: an effect every printed bead has and the model lacks (fit/nuisance.py:
