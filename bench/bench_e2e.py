@@ -11,7 +11,8 @@ on the test track. Truth = the virtual printer's parameters.
 
 Rows, over ``CALIB_BENCH_E2E_SEEDS`` seeds (default 40; ``CALIB_BENCH_E2E_BP_SEEDS`` for the
 back-pressure truth, default the same: its fits take ~5 min each; ``CALIB_BENCH_E2E_PHONE_SEEDS``
-for the second scene, the `pa` print photographed by a 12 MP phone at 35 deg; 2 processes):
+for the second scene, the `pa` print photographed by a 12 MP phone at 35 deg, default 24
+or fewer; 2 processes):
 - the share of seeds whose 90 % interval holds the truth, for tau of `pa+spread(+scan_bias)`
   and for tau, Kb, w_sat of `pa+backpressure+spread+scan_bias` (80-97 %; scan_bias with the
   prior `calib fit` gives it from the measurement's calibration; binomial sd at 90 % with 40 seeds
@@ -168,7 +169,7 @@ def _run(jobs, workers):
 def run() -> list[Row]:
     n = int(os.environ.get("CALIB_BENCH_E2E_SEEDS", "40"))
     n_bp = int(os.environ.get("CALIB_BENCH_E2E_BP_SEEDS", str(n)))
-    n_ph = int(os.environ.get("CALIB_BENCH_E2E_PHONE_SEEDS", str(n)))
+    n_ph = int(os.environ.get("CALIB_BENCH_E2E_PHONE_SEEDS", str(min(n, 24))))
     # the slow back-pressure fits first, so the two workers finish together
     jobs = [("pa+backpressure", s) for s in range(n_bp)] + [("pa, phone", s) for s in range(n_ph)] + \
         [("pa", s) for s in range(n)]
