@@ -25,6 +25,15 @@ from fit.modes import physical_mask
 #: Effects every real bead has: (name, start value of its parameters in the warm start).
 NUISANCE = {"spread": {"spread.sigma_mm": 0.15}}
 DECISIVE_BIC = 10.0
+#: Effects whose values describe the bead or the picture, not a setting of the printer:
+#: nobody pastes them, so the verdict does not ask them to be unique or to stay put.
+NOT_PASTED = ("spread", "scan_bias", "view_xy", "view_heading")
+
+
+def pasted(name: str) -> bool:
+    """Whether parameter ``name`` ("effect.param", per-scan "@scan" suffixes allowed) is a
+    value of the printer's (not noise, not one of NOT_PASTED)."""
+    return not name.startswith("noise.") and name.split(".", 1)[0] not in NOT_PASTED
 
 
 def nuisance_check(make_problem, spec: str, map_values: dict, map_bic: float, ci95: dict,
@@ -56,8 +65,8 @@ def refit_with(make_problem, spec: str, effect: str, start: dict, map_values: di
     m = fit_map(pb, x0=np.clip(x0, *pb.bounds.T), n_starts=2, seed=seed)
     moved = {}
     for n, phys in zip(pb.param_names, physical_mask(pb.param_names)):
-        # the scan's own edge offset is not a value anyone pastes into a printer
-        if phys and n in ci95 and n in map_values and not n.startswith("scan_bias."):
+        # the scan's own edge offset, the bead's spread: not values anyone pastes
+        if phys and n in ci95 and n in map_values and pasted(n):
             lo, hi = ci95[n]
             v, v0 = float(m.values[n]), float(map_values[n])
             # outside the interval *and* moved by more than its half width: a MAP that

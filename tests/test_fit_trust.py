@@ -176,3 +176,19 @@ def test_the_beads_own_wobble_is_not_a_misfit_but_a_missing_effect_still_is():
         assert wrong.chi2_nu_bead > CHI2_NU_MAX
         doc["information"].update(chi2_nu=wrong.chi2_nu, chi2_nu_bead=wrong.chi2_nu_bead)
         assert not assess(doc).trustworthy
+
+
+def test_a_rival_mode_that_differs_only_in_the_bead_or_the_picture_is_not_a_second_printer():
+    """fit/nuisance.py NOT_PASTED: spread 0 against 0.2 with the same tau (phone seed 19 of
+    bench_e2e) is not two printers; the same rival with another tau is."""
+    doc = _doc()
+    doc["params"]["spread.sigma_mm"] = {"median": 0.2, "ci95": [0.17, 0.23]}
+    doc["priors"]["spread.sigma_mm"] = {"kind": "uniform", "lower": 0.0, "upper": 1.0}
+    best = {"values": {"pa.tau_s": 0.31, "spread.sigma_mm": 0.2}, "bic": 100.0}
+    bead = {"values": {"pa.tau_s": 0.31, "spread.sigma_mm": 1e-9}, "bic": 104.0}
+    printer = {"values": {"pa.tau_s": 0.02, "spread.sigma_mm": 1e-9}, "bic": 104.0}
+    doc["map"] = {"modes": [best, bead]}
+    assert assess(doc).trustworthy
+    doc["map"] = {"modes": [best, printer]}
+    v = assess(doc)
+    assert not v.trustworthy and "pa.tau_s = 0.02" in v.problems[0] and "spread" not in v.problems[0]
