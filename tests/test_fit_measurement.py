@@ -78,6 +78,12 @@ def test_model_auto_starts_with_scan_bias_on_apparent_widths(tmp_path, monkeypat
         assert _prior(problem, "scan_bias.b0_mm").sd == measurement.UNCALIBRATED_SD_MM
     # a prior of an effect the search did not choose does not stop the fit of the one it did
     assert "thermal.a" not in problem.param_names
+    # ... but a name no effect has is a typo, said in one line
+    from calib.errors import UserError
+    (tmp_path / "q.toml").write_text('["thermal.aa"]\nprior = "normal"\nmu = 0.0\nsd = 0.01\n')
+    with pytest.raises(UserError, match="thermal.aa"):
+        run_fit(scan_with_summary(tmp_path, cal), "auto", map_only=True, progress=False,
+                priors=str(tmp_path / "q.toml"))
 
 
 def test_search_priors_apply_only_to_models_that_have_the_parameter():

@@ -200,7 +200,13 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     if not missing:
         scan.missing_idx = scan.missing_idx[:0]
     base, pri = measurement.auto_start(scan.name, measurement.load_calibration(widths))
-    pri.update(load_priors_file(priors) if priors else {})
+    user = load_priors_file(priors) if priors else {}
+    # the search applies a prior to the models that have it; a name no effect has is a typo
+    known = {f"{c.name}.{p.name}" for c in [*REGISTRY.values(), *extra] for p in c.params}
+    bad = [k for k in user if k.split("@")[0] not in known and not k.startswith("noise.")]
+    if bad:
+        raise UserError(f"priors file names parameter {bad[0]!r}, which no effect has")
+    pri.update(user)
     res = auto_model(scan, lambda s: build_model(s, manifest.printer, extra_effects=extra),
                      list(REGISTRY), [c.name for c in extra], seed=seed, progress=progress,
                      chi2_max=CHI2_NU_MAX if chi2_max is None else chi2_max, base_spec=base,
