@@ -17,6 +17,7 @@ import numpy as np
 from calib.errors import UserError
 from calib.fileio import atomic_write_text
 from measure.imageio import load_image
+from measure.placement import Placement, placement, track_speeds
 from measure.register import FiducialsNotFound, Registration, register
 from measure.table import WidthTable
 from measure.widths import WidthMeasurement, measure_widths
@@ -46,6 +47,7 @@ class MeasureResult:
     summary: dict
     measurement: WidthMeasurement | None = None
     color: np.ndarray | None = None      # the picture (BGR uint8), for a later overlay
+    placement: Placement | None = None   # the printer's track placement (measure/placement.py)
 
 
 def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
@@ -96,6 +98,8 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         reg.residual_mm = float(np.median(np.abs(meas.centre_mm[good]))) if good.sum() >= 10 else float("nan")
     if not np.isfinite(reg.residual_mm):
         reg.residual_mm = reg.track_offset_rms_mm
+    # the residual counts the printer's own track placement too (measure/placement.py)
+    place = placement(table.track, meas.centre_mm, meas.nx, meas.ny, table.valid, track_speeds(manifest))
     warnings = list(reg.warnings) + list(cal.warnings)
     if valid_frac < 0.7:
         warnings.append(f"only {valid_frac:.0%} of the samples are valid; check the QA overlay")
@@ -105,7 +109,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "schema": "calib.measure-summary/1",
         "image": str(image_path),
         "image_size_px": list(reg.image_size),
-        "registration": reg.to_dict(),
+        "registration": {**reg.to_dict(), "placement": place.to_dict()},
         "samples": int(len(table)),
         "valid": int(ok.sum()),
         "fraction_valid": valid_frac,
@@ -126,7 +130,8 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     }
     if reg.info:
         summary["automatic_registration"] = reg.info
-    result = MeasureResult(table=table, registration=reg, summary=summary, measurement=meas, color=color)
+    result = MeasureResult(table=table, registration=reg, summary=summary, measurement=meas, color=color,
+                           placement=place)
     refusal = reg.info.get("refusal")        # the automatic pose found nothing convincing
     ppmm = _resolution_px_per_mm(reg, table)
     summary["resolution_px_per_mm"] = ppmm

@@ -50,6 +50,9 @@ def run(args) -> int:
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "
           f"registration residual {res.registration.residual_mm:.3f} mm ({res.registration.method})",
           file=sys.stderr)
+    if res.placement is not None and res.placement.sentence():
+        # the residual above then counts where the printer put its tracks, not only the pose
+        print(f"calib measure: {res.placement.sentence()}", file=sys.stderr)
     on = s.get("measured_on", {})
     if on.get("channel") == "colour discriminant":
         print(f"calib measure: widths measured on the colour axis that tells bead from plate (scatter "
