@@ -26,11 +26,28 @@ by more than MIN_GAIN over grey (white or grey plastic on a neutral plate gains 
 and it is used only when the widths measured on it scatter less (:func:`width_noise`):
 a JPEG stores colour at half resolution (4:2:0), which blurs and rings a chroma-weighted
 image more than the grey one.
+
+Colour at half resolution. A projection is luminance plus colour: every BGR channel is
+Y plus chroma terms, so (1) applied to a picture is (sum w) Y + c(u, v) with c the chroma
+part. Where a JPEG halved the chroma, c is restored at Y's resolution with the guided
+filter (He, Sun & Tang, "Guided image filtering", IEEE TPAMI 35 (2013) 1397, eqs. 5-8),
+Y the guide:
+
+    c' = mean_k(a) Y + mean_k(b),  a = cov_k(Y, c) / (var_k(Y) + eps),  b = mean_k(c) - a mean_k(Y)   (2)
+
+(means over (2 CHROMA_RADIUS_PX + 1)^2 windows): where the chroma follows the luminance (a
+bead's edge) it takes the luminance's sharp edge, where it does not (neutral plate grain)
+it stays the local mean. On the light-plate render with every phenomenon, re-encoded as
+a 4:2:0 JPEG of quality 70, the widths scattered 39 um in grey, 28 um on the plain
+projection and 23 um on the restored one (4:4:4: 12.5 um); and the scatter the choice
+below is made on read 24.4 / 19.6 (grey kept) before and 24.4 / 16.9 after. On a lossless
+picture (2) would only cost sharpness: it is applied to subsampled JPEGs only.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -51,6 +68,11 @@ MIN_WIDTH_MM = 0.45
 #: Plate samples sit this far (mm) beyond the commanded edge; those that come within
 #: 0.3 mm of any other bead are dropped.
 PLATE_OFFSET_MM = 0.5
+#: Guided filter (2) window half-width (px: JPEG halves chroma in pixels, whatever the
+#: dpi; 1, 2, 3 px gave 26, 24, 23 um of scatter on the test above) and regulariser
+#: (luminance variance, grey 0..1: windows flatter than a 1 % grey sd keep their mean).
+CHROMA_RADIUS_PX = 3
+CHROMA_EPS = 1e-4
 
 
 @dataclass
@@ -64,6 +86,7 @@ class Channel:
     plate_level, bead_level   medians of the projection on plate and on beads
     noise_*_mm, valid_*   the widths' scatter and valid fraction on either image
                 (:func:`width_noise`; only when the contrast-to-noise ratio made it a candidate)
+    chroma_restored   the projection's half-resolution chroma was restored by (2)
     """
 
     @property
@@ -92,6 +115,7 @@ class Channel:
     noise_color_mm: float = float("nan")
     valid_gray: float = float("nan")
     valid_color: float = float("nan")
+    chroma_restored: bool = False
 
     def to_dict(self) -> dict:
         return {"channel": "colour discriminant" if self.used else "grey",
@@ -99,20 +123,25 @@ class Channel:
                 "contrast_to_noise_grey": _finite(self.cnr_gray),
                 "contrast_to_noise_colour": _finite(self.cnr_color),
                 "width_noise_um_grey": _finite(self.noise_gray_mm * 1e3),
-                "width_noise_um_colour": _finite(self.noise_color_mm * 1e3)}
+                "width_noise_um_colour": _finite(self.noise_color_mm * 1e3),
+                "chroma_restored": bool(self.chroma_restored)}
 
 
 def _finite(v):
     return float(v) if np.isfinite(v) else None
 
 
-def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float = 1.0):
+def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float = 1.0,
+                 chroma_halved: bool = False):
     """(image, Channel): ``gray`` itself, or the colour projection (1) rescaled to grey's
     bead and plate levels when it separates bead from plate MIN_GAIN times better.
 
-    gray (H, W) float 0..1; color (H, W, 3) uint8 BGR; the registration maps bed mm to
-    pixels. Bead pixels: the centres of test-track stations every ``ds_mm`` (mm) of commanded
-    width >= MIN_WIDTH_MM; plate pixels: beside them on both sides (PLATE_OFFSET_MM).
+    gray (H, W) float 0..1 (the picture's luminance Y); color (H, W, 3) uint8 BGR; the
+    registration maps bed mm to pixels. Bead pixels: the centres of test-track stations
+    every ``ds_mm`` (mm) of commanded width >= MIN_WIDTH_MM; plate pixels: beside them on
+    both sides (PLATE_OFFSET_MM). ``chroma_halved``: the picture's colour was stored at a
+    lower resolution (measure.imageio.jpeg_chroma_subsampled): the projection's chroma is
+    restored by (2).
     """
     none = Channel(None, float("nan"), float("nan"), False)
     if color is None or color.ndim != 3 or color.shape[2] != 3:
@@ -158,6 +187,10 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
         return gray, ch
     gbm, gpm = float(np.median(gb)), float(np.median(gp))
     proj = cf @ wts.astype(np.float32)
+    if chroma_halved:
+        luma = np.float32(wts.sum()) * gray.astype(np.float32)
+        proj = luma + guided_filter(gray.astype(np.float32), proj - luma, CHROMA_RADIUS_PX, CHROMA_EPS)
+        ch.chroma_restored = True
     img = (gpm + (proj - pp) * ((gbm - gpm) / (pb - pp))).astype(np.float32)
     # The plate's contrast is not the edges': where the colour is stored at half
     # resolution and coarsely (JPEG), the projection's edges are blurred and ringing, and
@@ -168,6 +201,19 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     ch.used = bool(ch.noise_color_mm < ch.noise_gray_mm / MIN_NOISE_GAIN
                    and ch.valid_color >= ch.valid_gray - 0.05)
     return (img if ch.used else gray), ch
+
+
+def guided_filter(guide, src, radius_px: int, eps: float):
+    """``src`` (H, W) float32 filtered by (2) with ``guide`` (H, W) float32 (He et al. 2013)."""
+    k = (2 * radius_px + 1, 2 * radius_px + 1)
+
+    def box(x):
+        return cv2.boxFilter(x, -1, k, normalize=True, borderType=cv2.BORDER_REFLECT)
+
+    mg, ms = box(guide), box(src)
+    a = (box(guide * src) - mg * ms) / (box(guide * guide) - mg * mg + np.float32(eps))
+    b = ms - a * mg
+    return box(a) * guide + box(b)
 
 
 def width_noise(img, color, manifest: Manifest, registration, ds_mm: float = 2.0) -> tuple[float, float]:

@@ -44,6 +44,42 @@ def sniff_format(head: bytes) -> str | None:
     return None
 
 
+def jpeg_chroma_subsampled(path) -> bool:
+    """True when ``path`` is a JPEG whose colour (Cb, Cr) is stored at a lower resolution
+    than its luminance (4:2:0 or 4:2:2: phones and most scanners' JPEG), read from the
+    frame header's sampling factors (ITU T.81 B.2.2); False for anything else or a header
+    that cannot be read (the caller then treats the colour as full resolution)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(1 << 20)
+    except OSError:
+        return False
+    if not data.startswith(b"\xff\xd8"):
+        return False
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return False
+        marker = data[i + 1]
+        if marker == 0xFF:                       # fill byte
+            i += 1
+            continue
+        length = int.from_bytes(data[i + 2:i + 4], "big")
+        # SOF0-SOF15 except DHT (C4), JPG (C8) and DAC (CC)
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            n = data[i + 9] if i + 9 < len(data) else 0
+            comps = [data[i + 11 + 3 * k] for k in range(n) if i + 11 + 3 * k < len(data)]
+            if n != 3 or len(comps) != 3:
+                return False
+            h = [c >> 4 for c in comps]
+            v = [c & 15 for c in comps]
+            return h[0] > max(h[1:]) or v[0] > max(v[1:])
+        if marker == 0xDA:                       # start of scan: no frame header before it
+            return False
+        i += 2 + length
+    return False
+
+
 def load_image(path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``path`` and return ``(gray float32 0..1 (H, W), color uint8 BGR (H, W, 3))``.
 

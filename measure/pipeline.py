@@ -16,7 +16,7 @@ import numpy as np
 
 from calib.errors import UserError
 from calib.fileio import atomic_write_text
-from measure.imageio import load_image
+from measure.imageio import jpeg_chroma_subsampled, load_image
 from measure.placement import Placement, placement, track_speeds
 from measure.register import FiducialsNotFound, Registration, register
 from measure.table import WidthTable
@@ -65,7 +65,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     # widths are measured on the channel that best tells bead from plate (grey unless a
     # coloured bead on a grained plate separates much better in colour: measure/contrast.py)
     from measure.contrast import bead_channel
-    gray, channel = bead_channel(gray, color, manifest, reg)
+    gray, channel = bead_channel(gray, color, manifest, reg, chroma_halved=jpeg_chroma_subsampled(image_path))
     if reg.method.startswith("auto"):
         # the automatic pose is refined once more on the bead centres it measures (ICP;
         # with stations every 1 mm instead of 0.25 mm the flatbed render's pose was 30x
