@@ -98,11 +98,9 @@ class Channel:
     def bead_likeness(self, color, uv) -> np.ndarray:
         """(N,) where the colour at pixels ``uv`` (N, 2) lies between plate (0) and bead (1)
         on the discriminant axis (1)."""
-        cf = color.astype(np.float32) / 255.0
         H, W = color.shape[:2]
         u, v = np.clip(uv[:, 0], 0, W - 1), np.clip(uv[:, 1], 0, H - 1)
-        val = sum(float(self.weights[k]) * ndimage.map_coordinates(cf[..., k], [v, u], order=1)
-                  for k in range(3))
+        val = sample_colour(color, u, v) @ np.asarray(self.weights, np.float64)
         return (val - self.plate_level) / (self.bead_level - self.plate_level)
 
     weights: np.ndarray | None
@@ -161,7 +159,6 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     if len(plate_xy) < 30:
         return gray, none
     H, W = gray.shape
-    cf = color.astype(np.float32) / 255.0
 
     def sample(img, pts):
         uv = registration.project(pts)
@@ -169,10 +166,9 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
         uv = uv[ok]
         if img.ndim == 2:
             return ndimage.map_coordinates(img, [uv[:, 1], uv[:, 0]], order=1)
-        return np.column_stack([ndimage.map_coordinates(img[..., k], [uv[:, 1], uv[:, 0]], order=1)
-                                for k in range(img.shape[2])])
+        return sample_colour(img, uv[:, 0], uv[:, 1])
 
-    cb, cp = sample(cf, bead_xy), sample(cf, plate_xy)
+    cb, cp = sample(color, bead_xy), sample(color, plate_xy)
     gb, gp = sample(gray, bead_xy), sample(gray, plate_xy)
     if len(cb) < 30 or len(cp) < 30:
         return gray, none
@@ -186,7 +182,8 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     if not cnr_c > MIN_GAIN * cnr_g:
         return gray, ch
     gbm, gpm = float(np.median(gb)), float(np.median(gp))
-    proj = cf @ wts.astype(np.float32)
+    # the projection is only built (a 12 MP float copy) once colour is a candidate
+    proj = (color.astype(np.float32) / np.float32(255.0)) @ wts.astype(np.float32)
     if chroma_halved:
         luma = np.float32(wts.sum()) * gray.astype(np.float32)
         proj = luma + guided_filter(gray.astype(np.float32), proj - luma, CHROMA_RADIUS_PX, CHROMA_EPS)
@@ -201,6 +198,13 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     ch.used = bool(ch.noise_color_mm < ch.noise_gray_mm / MIN_NOISE_GAIN
                    and ch.valid_color >= ch.valid_gray - 0.05)
     return (img if ch.used else gray), ch
+
+
+def sample_colour(color, u, v) -> np.ndarray:
+    """(N, 3) BGR of the uint8 picture ``color`` at pixels (u, v) (N,), bilinear, 0..1:
+    the channels are sampled where asked instead of converting the whole picture."""
+    return np.column_stack([ndimage.map_coordinates(np.ascontiguousarray(color[..., k]), [v, u], order=1,
+                                                    output=np.float32) for k in range(3)]) / np.float32(255.0)
 
 
 def guided_filter(guide, src, radius_px: int, eps: float):

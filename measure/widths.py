@@ -677,9 +677,9 @@ def _group_median(group, values, ok, track):
 def _saturated(color, uv, t, w, c, inside):
     """True where a pixel on the bead (|t - c| < w/2) is saturated in any channel."""
     col = np.asarray(color)
-    peak = col.max(axis=2) if col.ndim == 3 else col
-    sat_img = (peak >= 254).astype(np.float32)
+    # the brightest channel at the profile's pixels only (not a 12 MP max and float copy)
+    chans = [np.ascontiguousarray(col[..., k]) for k in range(col.shape[2])] if col.ndim == 3 else [col]
+    at = [uv[..., 1].ravel(), uv[..., 0].ravel()]
+    peak = np.max([ndimage.map_coordinates(ch, at, order=0, mode="constant", cval=0) for ch in chans], axis=0)
     on_bead = np.abs(t - c[:, None]) < np.maximum(w, 0)[:, None] / 2
-    s = ndimage.map_coordinates(sat_img, [uv[..., 1].ravel(), uv[..., 0].ravel()], order=0,
-                                mode="constant", cval=0.0).reshape(t.shape)
-    return ((s > 0) & on_bead & inside).any(axis=1)
+    return ((peak.reshape(t.shape) >= 254) & on_bead & inside).any(axis=1)
