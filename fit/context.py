@@ -103,6 +103,9 @@ class SimContext:
     firmware_pa_s: float = 0.0
     firmware_smooth_time_s: float = 0.0
     cache: dict = field(default_factory=dict, repr=False)
+    #: (n_s,) the edge blur each station's width was measured with (mm; NaN unknown),
+    #: from the widths table (fit/data.py scan_from_table); None: not given
+    s_blur_mm: np.ndarray | None = None
     #: The same print on the coarsened physics timeline (:func:`coarsen_nodes`), cut
     #: after the last node any station's width depends on (:func:`last_needed_node`),
     #: used by ``Model.predict`` (widths only); None if that saves less than 10 %. The arrays above

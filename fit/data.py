@@ -191,6 +191,11 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
     if ctx is None and build_ctx:
         from fit.context import SimContext
         ctx = SimContext.build(manifest, samples)
+    # the measurement's blur per station (fit/effects.py ViewBlur), on the context and on
+    # the coarsened one that predicts the widths
+    for c in (ctx, getattr(ctx, "physics", None)):
+        if c is not None and hasattr(c, "s_blur_mm"):
+            c.s_blur_mm = np.asarray(table.blur_mm, dtype=float)
     return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
                     y_mm=table.width_mm[idx].copy(), sd_mm=table.width_sd_mm[idx].copy(),
                     gap_mm=gap, ctx=ctx, missing_idx=missing_rows(table, samples, ctx))

@@ -27,7 +27,7 @@ NUISANCE = {"spread": {"spread.sigma_mm": 0.15}}
 DECISIVE_BIC = 10.0
 #: Effects whose values describe the bead or the picture, not a setting of the printer:
 #: nobody pastes them, so the verdict does not ask them to be unique or to stay put.
-NOT_PASTED = ("spread", "scan_bias", "view_xy", "view_heading")
+NOT_PASTED = ("spread", "scan_bias", "view_xy", "view_heading", "view_blur")
 
 
 def pasted(name: str) -> bool:
@@ -49,6 +49,16 @@ def nuisance_check(make_problem, spec: str, map_values: dict, map_bic: float, ci
 
     return [refit_with(make_problem, spec, effect, start, map_values, map_bic, ci95, seed)
             for effect, start in NUISANCE.items() if effect not in split_spec(spec)]
+
+
+def _has_blur(problem) -> bool:
+    """Whether any scan of ``problem`` carries the measurement's per-station blur (the
+    widths CSV's ``blur_mm``; tables without it cannot be asked about ViewBlur)."""
+    for sc in getattr(problem, "scans", ()):
+        b = getattr(getattr(sc, "ctx", None), "s_blur_mm", None)
+        if b is not None and np.isfinite(np.asarray(b, dtype=float)).sum() >= 10:
+            return True
+    return False
 
 
 def refit_with(make_problem, spec: str, effect: str, start: dict, map_values: dict, map_bic: float,
@@ -94,6 +104,7 @@ def structure_check(make_problem, spec: str, covariate: str, map_values: dict, m
     have = set(split_spec(spec))
     effects = [e for e, covs in EFFECT_COVARIATES.items()
                if covariate in covs and e not in have and e not in NOT_CANDIDATES]
-    effects += [e for e, covs in VIEW_COVARIATES.items() if covariate in covs and e not in have]
+    effects += [e for e, covs in VIEW_COVARIATES.items() if covariate in covs and e not in have
+                and (e != "view_blur" or _has_blur(make_problem(spec)))]
     return [refit_with(make_problem, spec, e, NUISANCE.get(e, {}), map_values, map_bic, ci95, seed)
             for e in effects]

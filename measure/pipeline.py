@@ -80,6 +80,9 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0
     meas = measure_widths(gray, manifest, reg, color=color, colour_axis=channel)
     table = meas.table
+    # the blur each width was read with: the apparent width of a rounded bead depends on it
+    # (fit/effects.py ViewBlur)
+    table.blur_mm = np.asarray(meas.blur_mm, dtype=float).copy()
     cal = apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=meas.blur_plane_px,
                                      test_measurement=meas, colour_axis=channel)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0

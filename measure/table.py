@@ -13,6 +13,8 @@ CSV columns (README "Widths CSV"):
                  missing, glare, edge, fit, neighbour, end, isolated: a valid-looking
                  station among failed fits, oblique: what was found runs across the
                  track, a string or another line, ...)
+    blur_mm      optional: the edge blur (Gaussian sd, mm across the track) the width was
+                 read with; empty when unknown (tables written before it, truths)
 """
 from __future__ import annotations
 
@@ -27,6 +29,8 @@ from calib.errors import UserError
 from calib.fileio import atomic_write_text
 
 COLUMNS = ("track", "s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm", "valid", "flag")
+#: Columns a table may lack (read as NaN).
+OPTIONAL = ("blur_mm",)
 
 
 @dataclass
@@ -40,9 +44,12 @@ class WidthTable:
     width_sd_mm: np.ndarray
     valid: np.ndarray
     flag: np.ndarray = field(default=None)
+    blur_mm: np.ndarray = field(default=None)
 
     def __post_init__(self):
         n = len(self.track)
+        self.blur_mm = (np.full(n, np.nan) if self.blur_mm is None
+                        else np.asarray(self.blur_mm, dtype=float).reshape(n))
         self.track = np.asarray(self.track, dtype=np.int64)
         for name in ("s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=float).reshape(n))
@@ -56,17 +63,19 @@ class WidthTable:
         return len(self.track)
 
     def subset(self, mask) -> "WidthTable":
-        return WidthTable(**{c: getattr(self, c)[mask] for c in COLUMNS})
+        return WidthTable(**{c: getattr(self, c)[mask] for c in COLUMNS + OPTIONAL})
 
     # -- io ---------------------------------------------------------------------
     def to_csv_text(self) -> str:
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        w.writerow(COLUMNS)
+        w.writerow(COLUMNS + OPTIONAL)
         for i in range(len(self)):
+            b = self.blur_mm[i]
             w.writerow([int(self.track[i]), f"{self.s_mm[i]:.4f}", f"{self.x_mm[i]:.4f}",
                         f"{self.y_mm[i]:.4f}", f"{self.t_s[i]:.5f}", f"{self.width_mm[i]:.5f}",
-                        f"{self.width_sd_mm[i]:.5f}", int(self.valid[i]), self.flag[i] or ""])
+                        f"{self.width_sd_mm[i]:.5f}", int(self.valid[i]), self.flag[i] or "",
+                        f"{b:.5f}" if np.isfinite(b) else ""])
         return buf.getvalue()
 
     def save(self, path) -> Path:
@@ -92,10 +101,10 @@ class WidthTable:
         body = [r for r in rows[1:] if r]
         if not body:
             raise UserError(f"widths file {path} has a header but no samples")
-        idx = {c: header.index(c) for c in COLUMNS}
+        idx = {c: header.index(c) for c in COLUMNS + OPTIONAL if c in header}
         cols = {}
         try:
-            for c in COLUMNS:
+            for c in idx:
                 vals = [r[idx[c]] if idx[c] < len(r) else "" for r in body]
                 if c == "flag":
                     cols[c] = np.array(vals, dtype=object)
