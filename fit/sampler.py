@@ -611,8 +611,12 @@ def _loo_and_predictions(problem, flat, map_res, n_draws, rng):
         lls.append(ll)
         for k in range(len(problem.scans)):
             preds[k].append(problem.predict(chunk, k))
-    ll = np.concatenate(lls)
-    ll = ll[np.all(np.isfinite(ll), axis=1)]
+    if lls:
+        ll = np.concatenate(lls)
+        ll = ll[np.all(np.isfinite(ll), axis=1)]
+    else:       # n_draws = 0: no LOO, and the band collapses onto the MAP prediction
+        ll = np.empty((0, 0))
+        preds = [[problem.predict(map_res.theta, k)] for k in range(len(problem.scans))]
     loo = psis_loo(ll) if len(ll) >= 20 else {"elpd_loo": float("nan"), "warning": "too few draws"}
     out = []
     for k, sc in enumerate(problem.scans):

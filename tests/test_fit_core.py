@@ -211,6 +211,18 @@ def test_non_convergence_is_reported():
     assert "NOT CONVERGED" in r.diagnostics["warning"]
 
 
+def test_no_loo_draws_gives_map_predictions_and_no_loo():
+    """n_loo_draws=0 skips LOO (NaN, said so) and the prediction band collapses onto the
+    MAP prediction instead of failing on an empty set of draws."""
+    sc = make_scan(seed=7)
+    r = fit_mcmc(ToyModel(), sc, seed=0, progress=False, max_steps=60, check_every=20,
+                 n_loo_draws=0)
+    assert np.isnan(r.loo["elpd_loo"]) and "too few" in r.loo["warning"]
+    p = r.predictions[0]
+    assert p["pred_lo68_mm"] == p["pred_map_mm"] == p["pred_hi68_mm"]
+    assert len(p["pred_map_mm"]) == len(p["width_mm"])
+
+
 def test_sampler_keeps_going_until_the_ensembles_agree():
     """The autocorrelation rule alone is not convergence: with an R-hat bar no finite chain
     reaches (1.00001), the sampler must not stop at ~50 tau and call it done, but run to
