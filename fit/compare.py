@@ -44,7 +44,7 @@ import numpy as np
 
 from calib.errors import UserError
 from fit.data import ScanData, scan_from_table
-from fit.likelihood import CORR_NAME, SIGMA_NAME, JointProblem, NoiseOptions, ar1_phi
+from fit.likelihood import CORR_NAME, SIGMA_NAME, JointProblem, NoiseOptions, ar1_phi, is_noise
 from fit.result import FitResult, MapResult
 from fit.sampler import fit_map, fit_mcmc, make_problem
 from measure.table import WidthTable
@@ -163,7 +163,7 @@ def warm_starts(problem: JointProblem, fits: list[ModelFit]) -> tuple[list[np.nd
     parameter.
     """
     names = problem.param_names
-    physical = np.array([not n.startswith((SIGMA_NAME, CORR_NAME)) for n in names])
+    physical = np.array([not is_noise(n) for n in names])
     known = {}
     for f in sorted(fits, key=lambda f: f.bic, reverse=True):
         known.update(f.map.values)
@@ -210,7 +210,7 @@ def fit_model(model, scan: ScanData, spec: str = "", warm: list[ModelFit] = (), 
     spec = spec or str(getattr(model, "spec", ""))
     starts, free = warm_starts(problem, list(warm))
     base = starts or [problem.default_theta()]
-    noise = np.array([n.startswith((SIGMA_NAME, CORR_NAME)) for n in problem.param_names])
+    noise = np.array([is_noise(n) for n in problem.param_names])
     rng = np.random.default_rng(seed)
     cand = list(base)
     lo, hi = problem.bounds.T

@@ -74,7 +74,7 @@ before.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numba import prange
@@ -92,6 +92,13 @@ NUISANCE_EFFECTS = ("flow_gain", "bed_tilt", "scan_bias", "flow", "tilt", "layer
 
 SIGMA_NAME = "noise.sigma_extra_mm"
 CORR_NAME = "noise.corr_len_mm"
+SHORT_NAME = "noise.sigma_short_mm"
+#: Correlation length (mm) of the short wobble: about a nozzle width, the scale over
+#: which the bead's own surface tension and the nozzle's land correlate its width; at
+#: the measurement's 0.25 mm station spacing neighbours correlate exp(-0.25/0.4) = 0.54.
+SHORT_CORR_MM = 0.4
+#: The long wobble's correlation length is at least this many times the short one's.
+LONG_MIN_FACTOR = 5.0
 #: Smallest detection limit (mm) of a ``missing`` station: w_min = max(width_sd, this).
 MISSING_W_MIN_FLOOR_MM = 0.05
 #: Chance that a present bead is flagged missing (a misdetection floor for the censored
@@ -101,21 +108,29 @@ MISSING_FALSE_RATE = 0.02
 
 @dataclass(frozen=True)
 class NoiseOptions:
-    """Noise model switches: AR(1) along tracks, Student-t innovations with ``student_nu``
+    """Noise model switches: AR(1) along tracks (``short``: with the second, short
+    wobble of correlation length ``short_corr_mm``), Student-t innovations with ``student_nu``
     degrees of freedom (None: Gaussian); ``missing``: fit the stations flagged missing as
     censored data (module docstring; on by default, a no-op when a table has none) with
     detection limit w_min = max(width_sd, ``missing_w_min_floor_mm``) (mm)."""
 
     ar1: bool = True
+    short: bool = True
     student_nu: float | None = None
     missing: bool = True
     missing_w_min_floor_mm: float = MISSING_W_MIN_FLOOR_MM
     missing_false_rate: float = MISSING_FALSE_RATE
     sigma_prior: Prior = field(default_factory=lambda: Prior("loguniform", 1e-4, 0.5))
     corr_prior: Prior = field(default_factory=lambda: Prior("loguniform", 0.02, 50.0))
+    # uniform, not log-uniform: when the data hold no short wobble its sd goes to 0, and a
+    # log-uniform prior would leave the walkers a flat valley of several decades below
+    # the measurement's own sd to wander in
+    short_prior: Prior = field(default_factory=lambda: Prior("uniform", 0.0, 0.1))
+    short_corr_mm: float = SHORT_CORR_MM
 
 
-def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None) -> np.ndarray:
+def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None, sigma_short_mm=None,
+                     phi_short=None) -> np.ndarray:
     """Pointwise log-likelihood (n_sets, n) of residuals under the noise model above
     (the Kalman filter in numpy; the reference for the compiled kernel).
 
@@ -125,11 +140,17 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None)
     phi             (n_sets, n) correlation of x to the previous sample (0 at a track start),
                     or None for independent samples
     student_nu      None (Gaussian innovations) or degrees of freedom of Student-t innovations
+    sigma_short_mm  (n_sets, 1) or scalar sd of the short wobble (mm), or None (absent)
+    phi_short       (n_sets, n) its correlation to the previous sample (needs ``phi``)
     """
     r = np.atleast_2d(np.asarray(resid_mm, dtype=float))
+    short = sigma_short_mm is not None and phi_short is not None
     v, F = _kalman(r, np.asarray(sd_mm, dtype=float) ** 2,
                    np.broadcast_to(np.asarray(sigma_extra_mm, dtype=float) ** 2, (r.shape[0], 1))[:, 0],
-                   None if phi is None else np.broadcast_to(phi, r.shape))
+                   None if phi is None else np.broadcast_to(phi, r.shape),
+                   np.broadcast_to(np.asarray(sigma_short_mm, dtype=float) ** 2, (r.shape[0], 1))[:, 0]
+                   if short else None,
+                   np.broadcast_to(phi_short, r.shape) if short else None)
     if student_nu is None:
         return -0.5 * (v * v / F + np.log(F) + LOG2PI)
     nu = float(student_nu)
@@ -137,34 +158,46 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None)
     return c - 0.5 * np.log(F) - 0.5 * (nu + 1) * np.log1p(v * v / (F * nu))
 
 
-def _kalman(r, sd2, s2x, phi):
+def _kalman(r, sd2, s2x, phi, s2y=None, phi2=None):
     """Innovations v and their variances F (n_sets, n) of ``r`` (n_sets, n) under the
     noise model: sd2 (n,) measurement variances, s2x (n_sets,) sigma_extra^2, phi
-    (n_sets, n) or None (independent x). Linear in r: whitening any vector (a Jacobian
+    (n_sets, n) or None (independent x); s2y (n_sets,) sigma_short^2 and phi2 (n_sets, n)
+    of the short wobble, or None (absent). Linear in r: whitening any vector (a Jacobian
     for a Cramer-Rao bound) is v / sqrt(F) with the same gains."""
     n_sets, n = r.shape
     v = np.empty_like(r)
     F = np.empty_like(r)
-    a = np.zeros(n_sets)
-    P = s2x.copy()
+    short = s2y is not None and phi2 is not None and phi is not None
+    s2y = np.zeros(n_sets) if not short else np.asarray(s2y, dtype=float)
+    a, b = np.zeros(n_sets), np.zeros(n_sets)
+    P, P12, P22 = s2x.copy(), np.zeros(n_sets), s2y.copy()
     for j in range(n):
         ph = np.zeros(n_sets) if phi is None else phi[:, j]
-        ap = ph * a
+        ph2 = phi2[:, j] if short else np.zeros(n_sets)
+        ap, bp = ph * a, ph2 * b
         Pp = ph * ph * P + (1.0 - ph * ph) * s2x
-        F[:, j] = Pp + sd2[j]
-        v[:, j] = r[:, j] - ap
-        K = Pp / F[:, j]
-        a = ap + K * v[:, j]
-        P = Pp * (1.0 - K)
+        P12p = ph * ph2 * P12
+        P22p = ph2 * ph2 * P22 + (1.0 - ph2 * ph2) * s2y
+        F[:, j] = Pp + 2.0 * P12p + P22p + sd2[j]
+        v[:, j] = r[:, j] - ap - bp
+        K, K2 = (Pp + P12p) / F[:, j], (P12p + P22p) / F[:, j]
+        a, b = ap + K * v[:, j], bp + K2 * v[:, j]
+        P, P12, P22 = Pp - K * K * F[:, j], P12p - K * K2 * F[:, j], P22p - K2 * K2 * F[:, j]
     return v, F
 
 
-def whiten(x_mm, sd_mm, sigma_extra_mm: float, gap_mm, corr_len_mm: float | None) -> np.ndarray:
+def whiten(x_mm, sd_mm, sigma_extra_mm: float, gap_mm, corr_len_mm: float | None,
+           sigma_short_mm: float = 0.0, short_corr_mm: float = SHORT_CORR_MM) -> np.ndarray:
     """x (n,) whitened by the noise model: v / sqrt(F), ~N(0, 1) per sample if x is
-    residual noise of that model. ``corr_len_mm`` None: independent samples."""
+    residual noise of that model. ``corr_len_mm`` None: independent samples (and no
+    short wobble)."""
     x = np.atleast_2d(np.asarray(x_mm, dtype=float))
-    phi = None if corr_len_mm is None else ar1_phi(np.asarray(gap_mm, dtype=float), [[corr_len_mm]])
-    v, F = _kalman(x, np.asarray(sd_mm, dtype=float) ** 2, np.array([float(sigma_extra_mm) ** 2]), phi)
+    g = np.asarray(gap_mm, dtype=float)
+    phi = None if corr_len_mm is None else ar1_phi(g, [[corr_len_mm]])
+    short = phi is not None and sigma_short_mm > 0
+    v, F = _kalman(x, np.asarray(sd_mm, dtype=float) ** 2, np.array([float(sigma_extra_mm) ** 2]), phi,
+                   np.array([float(sigma_short_mm) ** 2]) if short else None,
+                   ar1_phi(g, [[short_corr_mm]]) if short else None)
     return (v / np.sqrt(F))[0]
 
 
@@ -196,37 +229,53 @@ def missing_loglik(pred_mm, w_min_mm, sigma_extra_mm, student_nu=None,
     return np.where(np.isfinite(ll), ll, -np.inf)
 
 
-def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, ell, nu, c_t, out):
+def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, ell, sig_s, ell_s, nu, c_t, out):
     """Compiled :func:`pointwise_loglik` fused with the residuals: for every set i and
-    valid sample j, r = y_j - pred[i, order_j], through the Kalman filter of the module
-    docstring; ell[i] <= 0 means independent x; nu <= 0 Gaussian, else Student-t with log
-    normaliser c_t. Writes out (n_sets, n)."""
+    valid sample j, r = y_j - pred[i, order_j], through the two-component Kalman filter
+    of the module docstring (long wobble sig[i], ell[i]; short wobble sig_s[i] with the
+    fixed correlation length ell_s); ell[i] <= 0 means independent x (and no short
+    component); nu <= 0 Gaussian, else Student-t with log normaliser c_t. Writes out
+    (n_sets, n). With sig_s = 0 the short state stays 0 and the arithmetic is the
+    one-component filter's, term for term."""
     n_sets = pred.shape[0]
     n = order.shape[0]
     for i in prange(n_sets):
         s2x = sig[i] * sig[i]
+        s2y = sig_s[i] * sig_s[i] if ell[i] > 0.0 else 0.0
         el = ell[i]
         a = 0.0
+        b = 0.0
         P = s2x
+        P12 = 0.0
+        P22 = s2y
         g_prev = -1.0
         phi = 0.0
+        phi2 = 0.0
         for j in range(n):
             if el > 0.0:
                 g = gap[j]
                 if g != g_prev:
                     phi = math.exp(-g / el)
+                    phi2 = math.exp(-g / ell_s) if s2y > 0.0 else 0.0
                     g_prev = g
             ap = phi * a
+            bp = phi2 * b
             Pp = phi * phi * P + (1.0 - phi * phi) * s2x
-            F = Pp + sd2[j]
-            v = y[j] - pred[i, order[j]] - ap
+            P12p = phi * phi2 * P12
+            P22p = phi2 * phi2 * P22 + (1.0 - phi2 * phi2) * s2y
+            F = Pp + 2.0 * P12p + P22p + sd2[j]
+            v = y[j] - pred[i, order[j]] - ap - bp
             if nu <= 0.0:
                 ll = -0.5 * (v * v / F + math.log(F) + LOG2PI)
             else:
                 ll = c_t - 0.5 * math.log(F) - 0.5 * (nu + 1.0) * math.log1p(v * v / (F * nu))
-            K = Pp / F
+            K = (Pp + P12p) / F
+            K2 = (P12p + P22p) / F
             a = ap + K * v
-            P = Pp * (1.0 - K)
+            b = bp + K2 * v
+            P = Pp - K * K * F
+            P12 = P12p - K * K2 * F
+            P22 = P22p - K2 * K2 * F
             out[i, j] = ll if math.isfinite(ll) else -math.inf
 
 
@@ -248,6 +297,11 @@ def censored_rows(scan) -> np.ndarray:
         if printed is not None and len(idx):
             idx = idx[np.asarray(printed, dtype=bool)[idx]]
     return idx
+
+
+def is_noise(param_name: str) -> bool:
+    """A parameter of the noise model (``noise.*``), not of the print."""
+    return param_name.startswith("noise.")
 
 
 def is_nuisance(param_name: str) -> bool:
@@ -280,7 +334,7 @@ class JointProblem:
         names: list[str] = []
         priors: dict[str, Prior] = {}
         self.index: list[np.ndarray] = []        # per scan: global index of each model param
-        self.noise_index: list[tuple[int, int | None]] = []
+        self.noise_index: list[tuple[int, int | None, int | None]] = []
         shared_pos = {}
         for n in names0:
             if not (joint and is_nuisance(n)):
@@ -303,12 +357,21 @@ class JointProblem:
             i_sig = len(names)
             names.append(SIGMA_NAME + suffix)
             priors[SIGMA_NAME + suffix] = noise.sigma_prior
-            i_cor = None
+            i_cor = i_short = None
             if noise.ar1:
                 i_cor = len(names)
                 names.append(CORR_NAME + suffix)
-                priors[CORR_NAME + suffix] = noise.corr_prior
-            self.noise_index.append((i_sig, i_cor))
+                # with the short wobble the long one starts at LONG_MIN_FACTOR x its length:
+                # two components of one length are one component with two names, and the
+                # walkers then wander between them (a toy fit with a single 0.6 mm wobble
+                # did not converge in 6000 steps)
+                priors[CORR_NAME + suffix] = replace(noise.corr_prior, lower=max(
+                    noise.corr_prior.lower, LONG_MIN_FACTOR * noise.short_corr_mm)) if noise.short else noise.corr_prior
+                if noise.short:
+                    i_short = len(names)
+                    names.append(SHORT_NAME + suffix)
+                    priors[SHORT_NAME + suffix] = noise.short_prior
+            self.noise_index.append((i_sig, i_cor, i_short))
         if prior_overrides:
             priors = apply_overrides(priors, prior_overrides)
         self.param_names = names
@@ -339,10 +402,12 @@ class JointProblem:
         th = np.empty(self.ndim)
         for k, m in enumerate(self.models):
             th[self.index[k]] = m.default_theta()
-        for i_sig, i_cor in self.noise_index:
+        for i_sig, i_cor, i_short in self.noise_index:
             th[i_sig] = 0.01
             if i_cor is not None:
                 th[i_cor] = 0.5
+            if i_short is not None:
+                th[i_short] = 0.001
         lo, hi = self.bounds.T
         return np.clip(th, lo, hi)
 
@@ -403,19 +468,21 @@ class JointProblem:
             # pointwise_loglik (the reference) with the residuals, in one compiled pass
             pred = np.ascontiguousarray(self.predict(th, k), dtype=float)
             self._last_pred = {**getattr(self, "_last_pred", {}), k: (self.model_theta(th, k).copy(), pred)}
-            i_sig, i_cor = self.noise_index[k]
+            i_sig, i_cor, i_short = self.noise_index[k]
             sig = np.ascontiguousarray(th[:, i_sig])
             ell = np.ascontiguousarray(th[:, i_cor]) if i_cor is not None else np.zeros(n_sets)
+            sig_s = np.ascontiguousarray(th[:, i_short]) if i_short is not None else np.zeros(n_sets)
             n = len(sc.order)
             buf = out if direct else np.empty((n_sets, n))
-            kern(pred, *self._kernel_arrays(k), sig, ell, nu_f, c_t, buf)
+            kern(pred, *self._kernel_arrays(k), sig, ell, sig_s, float(self.noise.short_corr_mm), nu_f, c_t, buf)
             if buf is not out:
                 out[:, col:col + n] = buf
             col += n
             mi = self.missing_idx[k]
             if len(mi):
                 out[:, col_m:col_m + len(mi)] = missing_loglik(
-                    pred[:, mi], self.missing_w_min_mm[k], sig[:, None], nu, self.noise.missing_false_rate)
+                    pred[:, mi], self.missing_w_min_mm[k], np.hypot(sig, sig_s)[:, None], nu,
+                    self.noise.missing_false_rate)
                 col_m += len(mi)
         return out
 
@@ -444,6 +511,7 @@ class JointProblem:
         out = []
         for k, sc in enumerate(self.scans):
             r = sc.y_mm - self.predict(th, k)[0, sc.order]
-            i_sig, i_cor = self.noise_index[k]
-            out.append(whiten(r, sc.sd_mm, th[0, i_sig], sc.gap_mm, None if i_cor is None else th[0, i_cor]))
+            i_sig, i_cor, i_short = self.noise_index[k]
+            out.append(whiten(r, sc.sd_mm, th[0, i_sig], sc.gap_mm, None if i_cor is None else th[0, i_cor],
+                              0.0 if i_short is None else float(th[0, i_short]), self.noise.short_corr_mm))
         return np.concatenate(out)

@@ -26,9 +26,9 @@ SEARCH_SEED = 20261123
 
 
 def physical_mask(param_names) -> np.ndarray:
-    from fit.likelihood import CORR_NAME, SIGMA_NAME
+    from fit.likelihood import is_noise
 
-    return np.array([not n.startswith((SIGMA_NAME, CORR_NAME)) for n in param_names])
+    return np.array([not is_noise(n) for n in param_names])
 
 
 def global_starts(neg_logpost_z, zlo, zhi, phys, z_default, *, popsize: int = 12,

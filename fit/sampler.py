@@ -35,7 +35,7 @@ from scipy.special import logsumexp
 
 from calib.errors import UserError
 from calib.progress import progress as progress_bar
-from fit.likelihood import CORR_NAME, SIGMA_NAME, JointProblem, NoiseOptions
+from fit.likelihood import JointProblem, NoiseOptions, is_noise
 from fit.result import WOBBLE_REL_MAX
 from fit.modes import distinct_modes, global_starts, physical_mask
 from fit.result import FitResult, MapResult, ParamSummary
@@ -228,14 +228,15 @@ def _map_result(problem, theta, cov, res, n_ok, label) -> MapResult:
     lp, ll = problem.log_prob(theta)
     resid = np.concatenate(problem.residuals(theta))
     sd = np.concatenate([sc.sd_mm for sc in problem.scans])
-    k_model = sum(1 for n in problem.param_names
-                  if not (n.startswith(SIGMA_NAME) or n.startswith(CORR_NAME)))
+    k_model = sum(1 for n in problem.param_names if not is_noise(n))
     n = problem.n_obs
     n_valid = len(resid)          # chi2_nu and RMS: valid samples (missing ones have no residual)
     # the bead's own wobble, allowed up to WOBBLE_REL_MAX of the width (fit/result.py)
-    allow = np.concatenate([np.full(len(sc.y_mm), min(float(theta[i_sig]), WOBBLE_REL_MAX * float(
-        np.median(np.abs(sc.y_mm))) if len(sc.y_mm) else 0.0)) for sc, (i_sig, _) in zip(problem.scans,
-                                                                                          problem.noise_index)])
+    # (long and short wobble together)
+    allow = np.concatenate([np.full(len(sc.y_mm), min(
+        math.hypot(float(theta[i_sig]), 0.0 if i_short is None else float(theta[i_short])),
+        WOBBLE_REL_MAX * float(np.median(np.abs(sc.y_mm))) if len(sc.y_mm) else 0.0))
+        for sc, (i_sig, _, i_short) in zip(problem.scans, problem.noise_index)])
     return MapResult(model=label, param_names=list(problem.param_names), theta=theta, cov=cov,
                      log_post=float(lp[0]), loglik=float(ll[0].sum()), pointwise=ll[0],
                      n_obs=n, k=problem.ndim, k_model=k_model,

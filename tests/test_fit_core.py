@@ -91,7 +91,8 @@ def make_scan(name="scan", tau=0.3, gain=1.0, sd=0.005, sig=0.015, ell=0.6, seed
 def test_loglik_equals_exact_multivariate_normal():
     """Sum of the pointwise terms is the exact density of an OU process (sigma_extra, ell)
     seen through white measurement noise of per-station sd: covariance
-    diag(sd^2) + sig^2 exp(-|s_i - s_j| / ell), with a gap and two tracks."""
+    diag(sd^2) + sig^2 exp(-|s_i - s_j| / ell), with a gap and two tracks; and with a
+    second, short OU process added (the short wobble)."""
     rng = np.random.default_rng(1)
     n, sig, ell = 40, 0.02, 0.7
     sd = rng.uniform(0.005, 0.015, n)
@@ -110,8 +111,20 @@ def test_loglik_equals_exact_multivariate_normal():
     from fit.likelihood import _AR1_SERIAL
     out = np.empty((1, n))
     _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.array([ell]),
-                -1.0, 0.0, out)
+                np.zeros(1), 0.4, -1.0, 0.0, out)
     assert np.allclose(out, ll, rtol=1e-12, atol=1e-12)
+    # with the short wobble (sd sig_s, correlation length ell_s): the sum of two OU
+    # processes, covariance diag(sd^2) + sig^2 exp(-|d| / ell) + sig_s^2 exp(-|d| / ell_s)
+    sig_s, ell_s = 0.015, 0.4
+    C2 = C + sig_s ** 2 * np.exp(-np.abs(np.subtract.outer(s, s)) / ell_s) * (track[:, None] == track[None, :])
+    exact2 = multivariate_normal(np.zeros(n), C2).logpdf(r)
+    ll2 = pointwise_loglik(r[None], sd, sig, ar1_phi(gap, np.array([[ell]])), sigma_short_mm=sig_s,
+                           phi_short=ar1_phi(gap, np.array([[ell_s]])))
+    assert ll2.sum() == pytest.approx(exact2, rel=1e-10)
+    assert abs(exact2 - exact) > 1.0            # the short wobble changes the density
+    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.array([ell]),
+                np.array([sig_s]), ell_s, -1.0, 0.0, out)
+    assert np.allclose(out, ll2, rtol=1e-12, atol=1e-12)
 
 
 def test_ar1_gap_uses_rho_to_the_power_of_the_gap():
@@ -170,7 +183,7 @@ def test_map_recovers_tau_and_gain_and_reports_information():
     assert m.pointwise.shape == (n,) and m.pointwise.sum() == pytest.approx(m.loglik)
     # widths scatter ~0.016 mm around the truth; the residual RMS must show it
     assert 0.010 < m.rms_mm < 0.025
-    assert m.k == 4 and m.k_model == 2
+    assert m.k == 5 and m.k_model == 2        # noise: long wobble sd and length, short wobble sd
 
 
 def test_mcmc_recovers_tau_with_honest_diagnostics():
