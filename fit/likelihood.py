@@ -3,7 +3,7 @@
 Noise model (per valid sample i, along one track, stations ordered by arc length s):
 
     r_i  = y_i - m_i(theta)                       residual (mm)
-    r_i  = x_i + eps_i
+    r_i  = x_i + z_i + eps_i
     eps_i ~ N(0, width_sd_i^2)                    the measurement's own error at the
                                                   station (``measure``), independent
     x_i  = phi_i x_{i-1} + sigma_extra sqrt(1 - phi_i^2) u_i,  phi_i = exp(-(s_i - s_{i-1}) / ell)
@@ -11,15 +11,33 @@ Noise model (per valid sample i, along one track, stations ordered by arc length
                                                   along the track (bead wobble, filament
                                                   diameter drift, plate texture, model error)
 
-i.e. an Ornstein-Uhlenbeck process of sd sigma_extra and correlation length ell seen
-through white measurement noise (an ARMA(1,1) along the track), covariance
-diag(width_sd^2) + sigma_extra^2 exp(-|s_i - s_j| / ell). The exact log-likelihood is
-the sum of the Kalman filter's one-step prediction terms (Durbin & Koopman 2012, "Time
-Series Analysis by State Space Methods", ch. 4): with the filtered state (a, P),
+    z_i  = the same with sigma_short and the fixed length SHORT_CORR_MM (0.4 mm): the
+           bead's short wobble, over about its own width
+
+i.e. two Ornstein-Uhlenbeck processes (sd sigma_extra, length ell >= LONG_MIN_FACTOR x
+0.4 mm; sd sigma_short, length 0.4 mm) seen through white measurement noise, covariance
+diag(width_sd^2) + sigma_extra^2 exp(-|s_i - s_j| / ell) + sigma_short^2 exp(-|s_i - s_j|
+/ 0.4). The exact log-likelihood is the sum of the Kalman filter's one-step prediction
+terms (Durbin & Koopman 2012, "Time Series Analysis by State Space Methods", ch. 4); for
+one wobble, with the filtered state (a, P),
 
     predict   a' = phi a,  P' = phi^2 P + (1 - phi^2) sigma_extra^2
     innovate  v = r - a',  F = P' + width_sd^2,   ll_i = -(ln 2 pi + ln F + v^2 / F) / 2
     update    K = P' / F,  a = a' + K v,  P = P' (1 - K)
+
+and with both the state is (x, z), the transition diag(phi, phi_s), the observation
+x + z (:func:`_kalman`).
+
+Why two wobbles (issue #11 item 5, the back-pressure fits reading tau low and Kb high
+together): a real bead wanders over tens of mm (filament diameter) *and* over about its
+own width, and one OU process cannot be both. On the 600 dpi back-pressure render's
+*true* widths (wander 1.2 % over 20 mm plus 3 um over 0.3 mm) the one wobble's length
+collapsed from ~26 mm to 3 mm whenever the white term did not hold the short part,
+and the whitened residual then weighed the flow steps' shape: tau 0.0379 s, Kb 0.218
+for 0.043 / 0.2. With the short wobble: 0.0426 / 0.1987, sigma_short 2.9 um (the
+render's 3), ell 49 mm, ln L +300. The short wobble's sd has a uniform prior (it may be
+absent), and the long length starts at 5 x its length so that the two cannot trade
+places (with one 0.6 mm wobble in the data they did, and the sampler wandered).
 
 The first sample of every track (and every new scan) starts from the stationary state
 (phi = 0 across a track start), so the sum is the exact joint log-likelihood, not a
@@ -41,8 +59,10 @@ uses; with correlated residuals that is a leave-one-out of the innovation, the u
 choice for time series (Buerkner et al. 2020, "Approximate leave-future-out
 cross-validation").
 
-``ell`` (``noise.corr_len_mm``) is fitted with a log-uniform prior; ``AR1=False`` fixes
-phi = 0 (x independent too: residual sd sqrt(width_sd^2 + sigma_extra^2)).
+``ell`` (``noise.corr_len_mm``) is fitted with a log-uniform prior, ``sigma_short``
+(``noise.sigma_short_mm``) with a uniform one on [0, 0.1] mm; ``short=False`` leaves the
+short wobble out; ``AR1=False`` fixes phi = 0 (x independent too: residual sd
+sqrt(width_sd^2 + sigma_extra^2), and no short wobble).
 
 Missing beads are censored data (issue #10 item 5). A station the measurement flagged
 ``missing`` (``fit.data.ScanData.missing_idx``: no bead seen where the nozzle passed over
