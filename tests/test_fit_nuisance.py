@@ -69,7 +69,7 @@ def test_structure_that_an_effect_explains_without_moving_the_value_is_a_caution
     rs["refits"] = structure_check(lambda spec: make_problem(build_model(spec, PROF), sc), "pa", rs["covariate"],
                                    m.values, m.bic, ci95)
     # the physical effect of that covariate, and the picture's own pattern in it
-    assert [r["effect"] for r in rs["refits"]] == ["heading", "view_heading"]
+    assert [r["effect"] for r in rs["refits"]] == ["heading", "view_heading", "view_glare"]
     assert rs["refits"][0]["delta_bic"] >= DECISIVE_BIC and not any(r["moved"] for r in rs["refits"])
     doc = {"converged": True, "information": {"chi2_nu": 1.0, "chi2_nu_bead": 1.0, "n_obs": 1000},
            "params": {}, "priors": {}, "diagnostics": {"residual_structure": rs}}
@@ -120,3 +120,37 @@ def test_a_width_that_follows_the_measurement_blur_is_the_pictures_and_leaves_ta
     bare = scan_from_table(t, man, "no blur column")
     assert "view_blur" not in [r["effect"] for r in structure_check(
         lambda spec: make_problem(build_model(spec, PROF), bare), "pa", rs["covariate"], m.values, m.bic, ci95)]
+
+
+def test_a_width_that_follows_the_glare_direction_is_the_pictures_and_leaves_tau_alone():
+    """ViewGlare (fit/effects.py) on a known answer of another form: apparent widths 15 um
+    wider where the bead runs within ~20 deg of one direction (mod 180 deg), a raised-cosine
+    window in the bead's angle to that direction, not the von Mises bump the effect fits.
+    `pa`'s residuals line up with the heading; the two heading harmonics of view_heading
+    cannot follow a bump that narrow, view_glare (started from several directions) explains
+    it decisively, finds the direction, and leaves tau inside its interval."""
+    from fit.nuisance import structure_check
+    from fit.trust import is_structured, residual_structure
+
+    sc = _scan("pa", {"pa.tau_s": 0.043}, 4)
+    t, man = sc.table, sc.manifest
+    theta0 = 1.1                                            # rad; the direction mod pi
+    d = np.angle(np.exp(2j * (sc.ctx.s_heading_rad - theta0))) / 2     # angle to it, (-pi/2, pi/2]
+    half = np.radians(20.0)
+    t.width_mm = t.width_mm + 0.015 * np.where(np.abs(d) < half, 0.5 * (1 + np.cos(np.pi * d / half)), 0.0)
+    sc = scan_from_table(t, man, "glare")
+
+    def problem(spec):
+        return make_problem(build_model(spec, PROF), sc)
+
+    m = fit_map(problem("pa"), seed=0, global_search=True)
+    sd = np.sqrt(np.diag(m.cov))
+    ci95 = {n: (v - 1.96 * s, v + 1.96 * s) for n, v, s in zip(m.param_names, m.theta, sd)}
+    rs = residual_structure(problem("pa"), m.theta)
+    assert is_structured(rs) and rs["covariate"] == "heading_rad"
+    refits = {r["effect"]: r for r in structure_check(problem, "pa", rs["covariate"], m.values, m.bic, ci95)}
+    assert refits["view_glare"]["delta_bic"] >= DECISIVE_BIC and not refits["view_glare"]["moved"]
+    assert refits["view_glare"]["delta_bic"] > refits["view_heading"]["delta_bic"] + DECISIVE_BIC
+    g = fit_map(problem("pa+view_glare"), x0=None, seed=0, global_search=True).values
+    assert abs(np.angle(np.exp(2j * (g["view_glare.theta0_rad"] - theta0))) / 2) < 0.1
+    assert 0.008 < g["view_glare.amp_mm"] < 0.02
