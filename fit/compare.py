@@ -234,12 +234,14 @@ def fit_model(model, scan: ScanData, spec: str = "", warm: list[ModelFit] = (), 
         # the posterior has a second basin where a large sigma_extra with a long AR(1)
         # correlation length absorbs the misfit, and a start warm from a smaller model sits
         # in it even when the added effect can explain the misfit down to the noise.
-        # The wobble starts quiet (1 um): from the default 10 um with the long length at its
-        # 2 mm floor, a user effect that explains the misfit to the noise fell back into
-        # that basin (gear_slip example: sigma_extra 19 um, slip at 10 mm/s 40 % off).
+        # With the short wobble (NoiseOptions(short=True)) the wobble starts quiet (1 um):
+        # from the default 10 um with the long length at its 2 mm floor, a user effect that
+        # explains the misfit to the noise fell back into that basin (gear_slip example:
+        # sigma_extra 19 um, slip at 10 mm/s 40 % off).
         reset = best.theta.copy()
         reset[noise] = problem.default_theta()[noise]
-        reset[[j for j, n in enumerate(problem.param_names) if n.startswith(SIGMA_NAME)]] = 0.001
+        if problem.noise.short and problem.noise.ar1:
+            reset[[j for j, n in enumerate(problem.param_names) if n.startswith(SIGMA_NAME)]] = 0.001
         n_ok = min(len(order), max(1, n_polish))
         if not np.allclose(reset, best.theta):
             r = fit_map(problem, x0=reset, n_starts=1, seed=seed)

@@ -119,9 +119,9 @@ def test_ar1_bic_matches_the_hand_computed_likelihood_of_correlated_residuals():
         w[i] = rho * w[i - 1] + math.sqrt(1 - rho ** 2) * rng.standard_normal()
     y = 0.45 + 0.004 * x + 0.02 * w + 0.005 * rng.standard_normal(n)
     sd = 0.005
-    # one wobble (short=False): the default's second, short wobble is checked at the end
+    # one wobble (the default); the optional second, short wobble is checked at the end
     comp = compare_models(_scan(x, y, sd), {"const": LineModel(const=True), "line": LineModel()},
-                          full=False, noise=NoiseOptions(short=False))
+                          full=False)
     fits = {f.spec: f for f in comp.fits}
     f = fits["line"]
     a, b = f.map.theta[:2]
@@ -153,11 +153,12 @@ def test_ar1_bic_matches_the_hand_computed_likelihood_of_correlated_residuals():
     rows = {r["model"]: r for r in comp.rows()}
     assert rows["const"]["delta_bic"] == pytest.approx(fits["const"].bic - f.bic, abs=1e-9)
     assert rows["const"]["delta_bic"] > 10
-    # 5. the default noise model adds a short wobble (fixed length SHORT_CORR_MM, the long
+    # 5. NoiseOptions(short=True) adds a short wobble (fixed length SHORT_CORR_MM, the long
     # one then >= LONG_MIN_FACTOR x that): k = 5 and ln L is the density of the sum of the
     # two OU processes under the white noise
     from fit.likelihood import LONG_MIN_FACTOR, SHORT_CORR_MM
-    f2 = {g.spec: g for g in compare_models(_scan(x, y, sd), {"line": LineModel()}, full=False).fits}["line"]
+    f2 = {g.spec: g for g in compare_models(_scan(x, y, sd), {"line": LineModel()}, full=False,
+                                            noise=NoiseOptions(short=True)).fits}["line"]
     v2 = f2.map.values
     ell2, sig_s = v2["noise.corr_len_mm"], v2["noise.sigma_short_mm"]
     assert f2.k == 5 and ell2 >= LONG_MIN_FACTOR * SHORT_CORR_MM

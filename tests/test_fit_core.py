@@ -183,7 +183,7 @@ def test_map_recovers_tau_and_gain_and_reports_information():
     assert m.pointwise.shape == (n,) and m.pointwise.sum() == pytest.approx(m.loglik)
     # widths scatter ~0.016 mm around the truth; the residual RMS must show it
     assert 0.010 < m.rms_mm < 0.025
-    assert m.k == 5 and m.k_model == 2        # noise: long wobble sd and length, short wobble sd
+    assert m.k == 4 and m.k_model == 2        # noise: the wobble's sd and length
 
 
 def test_mcmc_recovers_tau_with_honest_diagnostics():

@@ -72,7 +72,8 @@ def _theta(problem, sigma_mm, kc_mm=TRUTH["offset.kc_mm"], tau_s=TRUTH["pa.tau_s
     th[names.index("pa.tau_s")] = tau_s
     th[names.index("offset.kc_mm")] = kc_mm
     th[names.index("noise.sigma_extra_mm")] = sigma_mm
-    th[names.index("noise.sigma_short_mm")] = 0.0     # the censored term's s holds both wobbles
+    if "noise.sigma_short_mm" in names:
+        th[names.index("noise.sigma_short_mm")] = 0.0  # the censored term's s holds both wobbles
     return th
 
 
@@ -101,11 +102,12 @@ def test_censored_term_is_the_normal_log_cdf(vprint):
         np.testing.assert_allclose(ll[i, sc.n_valid:], want, rtol=1e-10, atol=1e-12)
     assert ll[0, sc.n_valid:].sum() < ll[1, sc.n_valid:].sum() - 20   # Kc 0.15 lays beads there
     # the short wobble widens the soft threshold as the long one does: s^2 adds both
-    th_s = th[1].copy()
-    th_s[pr.param_names.index("noise.sigma_short_mm")] = 0.02
+    pr_s = _problem(model, sc, short=True)
+    th_s = np.insert(th[1], len(th[1]), 0.02)         # the short wobble's sd is the last parameter
+    assert pr_s.param_names[-1] == "noise.sigma_short_mm"
     s = math.sqrt(0.05 ** 2 / 4 + 0.03 ** 2 + 0.02 ** 2)
     want = np.logaddexp(math.log(0.98) + stats.norm.logcdf((0.05 - m[1]) / s), math.log(0.02))
-    np.testing.assert_allclose(pr.pointwise(th_s)[0, sc.n_valid:], want, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(pr_s.pointwise(th_s)[0, sc.n_valid:], want, rtol=1e-10, atol=1e-12)
     # log posterior includes them
     lp, lp_off = pr.log_prob(th)[0], pr_off.log_prob(th)[0]
     np.testing.assert_allclose(lp - lp_off, ll[:, sc.n_valid:].sum(axis=1), rtol=1e-9)
