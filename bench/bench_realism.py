@@ -74,6 +74,7 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
             res = measure_scan(path, man)
         except UserError as exc:
             return {"rms": np.nan, "bias": np.nan, "valid": 0.0, "calibrated": False, "error": str(exc), "by_fit": None,
+                    "sd_within": np.nan, "sd_ratio_low": np.nan, "sd_ratio_high": np.nan,
                     "markers": 0, "markers_expected": len(man.fiducials), "missed": np.nan,
                     "ghost_valid": np.nan}
         ghost = ghost_valid(path, man, res.registration)
@@ -82,6 +83,7 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
     ok = tb.valid & truth_ok
     e = tb.width_mm[ok] - tr.width_mm[ok]
     by_fit = None if res.summary["apparent_width"]["applied"] else calibrated_by_fit(man, tb, tr, printer)
+    sd_honest = sd_calibration(e, tb.width_sd_mm[ok])
     return {"by_fit": by_fit, "rms": float(np.sqrt(np.mean(e ** 2))) if ok.any() else np.nan,
             "bias": float(np.mean(e)) if ok.any() else np.nan,
             "valid": float(np.mean(tb.valid[truth_ok])) if truth_ok.any() else 0.0,
@@ -89,7 +91,27 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
             "ghost_valid": ghost,
             "calibrated": bool(res.summary["apparent_width"]["applied"]),
             "markers": int(res.registration.n_markers), "markers_expected": len(man.fiducials),
-            "method": res.registration.method, "error": ""}
+            "method": res.registration.method, "error": "", **sd_honest}
+
+
+def sd_calibration(err_mm, sd_mm) -> dict:
+    """Is the per-station sd (``width_sd_mm``) what the errors are? The share of stations
+    whose error about the scan's mean error lies within its sd (0.68 for a calibrated
+    Gaussian sd; the mean is the calibration's business, not the station's), and
+    RMS(error) / RMS(sd) over the fifth of the stations with the smallest and with the
+    largest sd (1 and 1 when calibrated station by station; the fit weighs each station
+    by its sd, fit/likelihood.py)."""
+    e = np.asarray(err_mm, dtype=float) - float(np.mean(err_mm)) if len(err_mm) else np.zeros(0)
+    sd = np.asarray(sd_mm, dtype=float)
+    if len(e) < 10:
+        return {"sd_within": np.nan, "sd_ratio_low": np.nan, "sd_ratio_high": np.nan}
+    lo, hi = np.quantile(sd, [0.2, 0.8])
+
+    def ratio(m):
+        return float(np.sqrt(np.mean(e[m] ** 2) / np.mean(sd[m] ** 2)))
+
+    return {"sd_within": float(np.mean(np.abs(e) <= sd)), "sd_ratio_low": ratio(sd <= lo),
+            "sd_ratio_high": ratio(sd >= hi)}
 
 
 def calibrated_by_fit(man, tb, tr, printer: str) -> dict:
@@ -172,6 +194,11 @@ def run() -> list[Row]:
             if cam == "flatbed":
                 rows.append(Row("realism", f"{label}: width bias, offset by the fit's scan_bias", b["bias"], "mm",
                                 "|.| <= 0.005", abs(b["bias"]) <= 0.005))
+        rows.append(Row("realism", f"{label}: errors within the station's reported sd (error / sd: "
+                        f"{f['sd_ratio_low']:.2f} on the fifth with the smallest sd, {f['sd_ratio_high']:.2f} "
+                        f"on the largest)", f["sd_within"], "fraction", "0.55-0.80, ratios 0.67-1.5",
+                        bool(np.isfinite(f["sd_within"]) and 0.55 <= f["sd_within"] <= 0.80
+                             and all(0.67 <= f[k] <= 1.5 for k in ("sd_ratio_low", "sd_ratio_high")))))
         rows.append(Row("realism", f"{label}: valid test stations", f["valid"], "fraction", ">= 0.90",
                         f["valid"] >= 0.90))
         rows.append(Row("realism", f"{label}: printed stations called missing", f["missed"], "fraction",
