@@ -93,7 +93,6 @@ def test_a_width_that_follows_the_measurement_blur_is_the_pictures_and_leaves_ta
     decisively with k = -0.5 recovered and tau inside its interval: a caution, not a problem.
     A table without the blur column is not asked."""
     from fit.nuisance import structure_check
-    from fit.trust import is_structured, residual_structure
 
     sc = _scan("pa", {"pa.tau_s": 0.043}, 3)
     t, man = sc.table, sc.manifest
@@ -103,15 +102,7 @@ def test_a_width_that_follows_the_measurement_blur_is_the_pictures_and_leaves_ta
     t.blur_mm = blur
     sc = scan_from_table(t, man, "blurred")
 
-    def problem(spec):
-        return make_problem(build_model(spec, PROF), sc)
-
-    m = fit_map(problem("pa"), seed=0, global_search=True)
-    sd = np.sqrt(np.diag(m.cov))
-    ci95 = {n: (v - 1.96 * s, v + 1.96 * s) for n, v, s in zip(m.param_names, m.theta, sd)}
-    rs = residual_structure(problem("pa"), m.theta)
-    assert is_structured(rs) and rs["covariate"] == "heading_rad"
-    refits = {r["effect"]: r for r in structure_check(problem, "pa", rs["covariate"], m.values, m.bic, ci95)}
+    problem, refits, (m, rs, ci95) = _heading_refits(sc)
     assert "view_blur" in refits and refits["view_blur"]["delta_bic"] >= DECISIVE_BIC
     assert not refits["view_blur"]["moved"]
     k = fit_map(problem("pa+view_blur"), seed=0, global_search=True).values["view_blur.k"]
@@ -129,9 +120,6 @@ def test_a_width_that_follows_the_glare_direction_is_the_pictures_and_leaves_tau
     `pa`'s residuals line up with the heading; the two heading harmonics of view_heading
     cannot follow a bump that narrow, view_glare (started from several directions) explains
     it decisively, finds the direction, and leaves tau inside its interval."""
-    from fit.nuisance import structure_check
-    from fit.trust import is_structured, residual_structure
-
     sc = _scan("pa", {"pa.tau_s": 0.043}, 4)
     t, man = sc.table, sc.manifest
     theta0 = 1.1                                            # rad; the direction mod pi
@@ -139,6 +127,20 @@ def test_a_width_that_follows_the_glare_direction_is_the_pictures_and_leaves_tau
     half = np.radians(20.0)
     t.width_mm = t.width_mm + 0.015 * np.where(np.abs(d) < half, 0.5 * (1 + np.cos(np.pi * d / half)), 0.0)
     sc = scan_from_table(t, man, "glare")
+
+    problem, refits, _ = _heading_refits(sc)
+    assert refits["view_glare"]["delta_bic"] >= DECISIVE_BIC and not refits["view_glare"]["moved"]
+    assert refits["view_glare"]["delta_bic"] > refits["view_heading"]["delta_bic"] + DECISIVE_BIC
+    g = fit_map(problem("pa+view_glare"), seed=0, global_search=True).values
+    assert abs(np.angle(np.exp(2j * (g["view_glare.theta0_rad"] - theta0))) / 2) < 0.1
+    assert 0.008 < g["view_glare.amp_mm"] < 0.02
+
+
+def _heading_refits(sc):
+    """`pa`'s MAP on ``sc``, whose residuals must follow the heading, and the structure
+    check's refits: (make_problem, {effect: refit}, (MAP, residual structure, ci95))."""
+    from fit.nuisance import structure_check
+    from fit.trust import is_structured, residual_structure
 
     def problem(spec):
         return make_problem(build_model(spec, PROF), sc)
@@ -149,8 +151,4 @@ def test_a_width_that_follows_the_glare_direction_is_the_pictures_and_leaves_tau
     rs = residual_structure(problem("pa"), m.theta)
     assert is_structured(rs) and rs["covariate"] == "heading_rad"
     refits = {r["effect"]: r for r in structure_check(problem, "pa", rs["covariate"], m.values, m.bic, ci95)}
-    assert refits["view_glare"]["delta_bic"] >= DECISIVE_BIC and not refits["view_glare"]["moved"]
-    assert refits["view_glare"]["delta_bic"] > refits["view_heading"]["delta_bic"] + DECISIVE_BIC
-    g = fit_map(problem("pa+view_glare"), x0=None, seed=0, global_search=True).values
-    assert abs(np.angle(np.exp(2j * (g["view_glare.theta0_rad"] - theta0))) / 2) < 0.1
-    assert 0.008 < g["view_glare.amp_mm"] < 0.02
+    return problem, refits, (m, rs, ci95)
