@@ -190,8 +190,16 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     cal.sections = rows
     ws = np.array([r["width_commanded_mm"] for r in rows])
     if len(rows) < 2 or np.ptp(ws) < 0.1:
-        cal.note = ("no apparent-width calibration: the print has no settled width-reference sections of two "
-                    "widths (the prime line of `calib pattern` G-code); widths are apparent widths")
+        present = [k for k in np.unique(section) if (section == k).sum() >= MIN_STATIONS]
+        widths_present = {round(float(np.nanmedian(nominal_mm[section == k])), 2) for k in present}
+        if len(widths_present) >= 2:
+            # the print has the reference; the picture did not give enough of it
+            cal.note = (f"no apparent-width calibration: only {len(rows)} of the {len(present)} width-reference "
+                        f"sections had >= {MIN_STATIONS} measurable stations (glare, strings or failed edge fits "
+                        "on the prime line: see the QA overlay); widths are apparent widths")
+        else:
+            cal.note = ("no apparent-width calibration: the print has no settled width-reference sections of two "
+                        "widths (the prime line of `calib pattern` G-code); widths are apparent widths")
         return cal
     A = np.column_stack([ws, np.ones(len(ws))])
     wt = 1.0 / np.array([r["apparent_sd_mm"] for r in rows]) ** 2

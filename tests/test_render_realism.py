@@ -35,6 +35,14 @@ def test_calibration_needs_two_widths_and_a_plausible_gain():
     assert not cal.applied and cal.warnings
 
 
+def test_calibration_says_when_the_reference_is_there_but_could_not_be_measured():
+    w, v, nom, sec = _stations(1.0, -0.03)
+    v[(sec == 1) & (np.arange(len(v)) % 4 != 0)] = False      # glare took 3 in 4 of the wide section
+    cal = calibrate(w, v, nom, sec)
+    assert not cal.applied
+    assert "only 2 of the 3 width-reference sections" in cal.note and "two widths (" not in cal.note
+
+
 def test_calibration_warns_when_a_section_has_not_settled():
     w, v, nom, sec = _stations(1.0, -0.03)
     w2 = w.copy()
