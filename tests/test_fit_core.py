@@ -310,3 +310,36 @@ def test_duet3d_peer_recovers_pa_from_exponential_steps():
     rise = 1 - np.exp(-x / (0.3 * 20))
     w = np.where(up, 0.35 + 0.25 * rise, 0.6 - 0.25 * rise) + 0.01 * np.sin(s / 7)
     assert duet3d_pa(s, w, 30.0, 20.0) == pytest.approx(0.3, rel=0.05)
+
+
+# -- influence: the MAP's linear response to the data (fit/influence.py) ---------------
+def test_influence_predicts_how_far_a_width_error_moves_the_map():
+    """Known answer: refit the MAP after adding a known width error; eq. (1) must predict the
+    shift of each parameter, and its attribution must add up to it."""
+    from dataclasses import replace
+
+    from fit.influence import influence
+    from fit.sampler import make_problem
+
+    sc = make_scan(tau=0.3, gain=1.05, seed=2)
+    m0 = fit_map(ToyModel(), sc)
+    infl = influence(make_problem(ToyModel(), sc), m0.theta)
+    assert infl.names == ["pa.tau_s", "flow_gain.gain"] and infl.A.shape == (2, sc.n_valid)
+    t = sc.table.t_s[infl.rows]
+    rising = sc.table.track[infl.rows] % 2 == 0          # make_scan: even tracks step 0.35 -> 0.6 mm
+    # 4 um narrower in the first 0.2 s of every rising step: reads as a slower rise (tau up)
+    e = np.where(rising & (t < 0.2), -0.004, 0.0)
+    pred = infl.shift(e)
+    m1 = fit_map(ToyModel(), replace(sc, y_mm=sc.y_mm + e), x0=m0.theta)
+    for name in infl.names:
+        actual = m1.values[name] - m0.values[name]
+        assert abs(actual) > 1e-4
+        assert pred[name] == pytest.approx(actual, rel=0.15), name
+    assert pred["pa.tau_s"] > 0
+    parts = infl.attribute("pa.tau_s", e, np.where(t < 0.1, "early", "late"))
+    assert sum(parts.values()) == pytest.approx(pred["pa.tau_s"])
+    # widths 1 % wider everywhere is exactly a gain 1 % higher (w = g w_c): tau stays
+    w = ToyModel().predict(sc.ctx, m0.theta[:2])[0]
+    scaled = infl.shift(0.01 * w)
+    assert scaled["flow_gain.gain"] == pytest.approx(0.01 * m0.values["flow_gain.gain"], rel=0.02)
+    assert abs(scaled["pa.tau_s"]) < 0.02 * abs(pred["pa.tau_s"])

@@ -1,0 +1,112 @@
+"""Which widths move which parameter: the fit's linear response to a change in the data.
+
+At the MAP theta of a fit, a small change e (mm) of the measured widths moves the
+parameters by (Gauss-Newton, noise parameters held at the MAP):
+
+    d theta = A e,   A = (Jw^T Jw + P)^-1 Jw^T M,   Jw = M J                         (1)
+
+J (n, p): d(model width)/d(theta) at the stations (mm per parameter unit, central
+differences); M (n, n): the noise model's whitening (the Kalman innovations v / sqrt(F)
+of fit/likelihood.py, linear in the residual), so Jw^T Jw is the Fisher information of
+the widths; P: the curvature of the log prior (normal priors such as `scan_bias`'s).
+
+Why: a measurement error that is small against the noise can still move a parameter by
+several of its sd when it sits where that parameter's information is. Given the
+measurement's error against a known truth (a render), A e says how far each parameter
+moves and ``attribute`` says which stations do it, so a bias can be traced to the part of
+the picture that causes it (bench/bench_e2e.py, issue #11: the back-pressure fits' Kb bias
+traced to the first 0.25 s after a flow change, 0.35 mm beads, glare headings).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fit.likelihood import _kalman, ar1_phi
+
+#: stations whitened per batch when building M (memory: batch x n doubles)
+_BATCH = 512
+
+
+@dataclass
+class Influence:
+    """Linear response of the MAP to the widths of one scan (eq. 1).
+
+    names    the parameters that respond (the noise parameters are held fixed)
+    A        (p, n) d theta / d y (parameter unit per mm of width), columns in ``rows`` order
+    rows     (n,) the widths table rows of the scan's valid stations (ScanData.order)
+    theta    the MAP the response is taken at (all parameters of the problem)
+    """
+
+    names: list
+    A: np.ndarray
+    rows: np.ndarray
+    theta: np.ndarray
+
+    def shift(self, error_mm) -> dict:
+        """Parameter shifts (eq. 1) caused by a width error per station (mm, ``rows`` order;
+        NaN counts as 0)."""
+        e = np.nan_to_num(np.asarray(error_mm, dtype=float))
+        return dict(zip(self.names, (self.A @ e).tolist()))
+
+    def attribute(self, name: str, error_mm, groups) -> dict:
+        """The shift of parameter ``name`` caused by ``error_mm``, summed per group label
+        (``groups``: one label per station, ``rows`` order): the parts add up to the whole."""
+        e = np.nan_to_num(np.asarray(error_mm, dtype=float))
+        c = self.A[self.names.index(name)] * e
+        groups = np.asarray(groups)
+        return {g: float(c[groups == g].sum()) for g in np.unique(groups)}
+
+
+def whitening_matrix(sc, sigma_extra_mm: float, corr_len_mm: float | None, sigma_short_mm: float = 0.0,
+                     short_corr_mm: float = 0.4) -> np.ndarray:
+    """M (n, n) with M @ x = fit.likelihood.whiten(x, ...) for the scan's valid stations
+    (its sd_mm and gap_mm): the whitening is linear in x, so M is it applied to the unit
+    vectors."""
+    n = len(sc.y_mm)
+    sd2 = np.asarray(sc.sd_mm, dtype=float) ** 2
+    g = np.asarray(sc.gap_mm, dtype=float)
+    phi = None if corr_len_mm is None else ar1_phi(g, [[corr_len_mm]])
+    short = phi is not None and sigma_short_mm > 0
+    cols = []
+    for k0 in range(0, n, _BATCH):
+        eye = np.zeros((min(_BATCH, n - k0), n))
+        eye[np.arange(len(eye)), k0 + np.arange(len(eye))] = 1.0
+        v, F = _kalman(eye, sd2, np.array([sigma_extra_mm ** 2]), phi,
+                       np.array([sigma_short_mm ** 2]) if short else None,
+                       ar1_phi(g, [[short_corr_mm]]) if short else None)
+        cols.append(v / np.sqrt(F))
+    return np.vstack(cols).T
+
+
+def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
+    """The MAP's linear response (eq. 1) to the widths of scan ``k`` of ``problem``
+    (fit.likelihood.JointProblem) at ``theta`` (its MAP)."""
+    theta = np.asarray(theta, dtype=float)
+    sc = problem.scans[k]
+    i_sig, i_cor, i_short = problem.noise_index[k]
+    noise = {i for trip in problem.noise_index for i in trip if i is not None}
+    free = [i for i in range(problem.ndim) if i not in noise]
+    lo, hi = problem.bounds.T
+
+    def pred(th):
+        return problem.predict(th[None], k)[0, sc.order]
+
+    J = np.empty((len(sc.order), len(free)))
+    P = np.zeros((len(free), len(free)))
+    for j, i in enumerate(free):
+        h = rel_step * max(abs(theta[i]), 1e-3)
+        # a one-sided difference at a bound (a parameter at 0 with a lower bound of 0)
+        up, dn = min(theta[i] + h, hi[i]), max(theta[i] - h, lo[i])
+        tp, tm = theta.copy(), theta.copy()
+        tp[i], tm[i] = up, dn
+        J[:, j] = (pred(tp) - pred(tm)) / (up - dn)
+        lp = [float(problem.priors[i].log_prob(np.array([x]))[0]) for x in (dn, theta[i], up)]
+        if all(np.isfinite(lp)) and up - theta[i] > 0 and theta[i] - dn > 0:
+            P[j, j] = max(0.0, -(lp[2] - 2 * lp[1] + lp[0]) / ((up - dn) / 2) ** 2)
+    M = whitening_matrix(sc, float(theta[i_sig]), None if i_cor is None else float(theta[i_cor]),
+                         0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm)
+    Jw = M @ J
+    A = np.linalg.solve(Jw.T @ Jw + P, Jw.T @ M)
+    return Influence(names=[problem.param_names[i] for i in free], A=A, rows=np.asarray(sc.order), theta=theta)
