@@ -15,7 +15,8 @@ several of its sd when it sits where that parameter's information is. Given the
 measurement's error against a known truth (a render), A e says how far each parameter
 moves and ``attribute`` says which stations do it, so a bias can be traced to the part of
 the picture that causes it (bench/bench_e2e.py, issue #11: the back-pressure fits' Kb bias
-traced to the first 0.25 s after a flow change, 0.35 mm beads, glare headings).
+traced to glare, the beads whose flanks do not face the scanner's lamp reading ~2.5 um
+narrower than the rest, which pulls Kb through the first 0.25 s after each flow change).
 """
 from __future__ import annotations
 
