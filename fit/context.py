@@ -106,6 +106,9 @@ class SimContext:
     #: (n_s,) the edge blur each station's width was measured with (mm; NaN unknown),
     #: from the widths table (fit/data.py scan_from_table); None: not given
     s_blur_mm: np.ndarray | None = None
+    #: (n_s,) each station's angle between its flank normal and the scan's light axis
+    #: (deg, 0-90; NaN unknown), from the widths table; None: not given
+    s_light_deg: np.ndarray | None = None
     #: The same print on the coarsened physics timeline (:func:`coarsen_nodes`), cut
     #: after the last node any station's width depends on (:func:`last_needed_node`),
     #: used by ``Model.predict`` (widths only); None if that saves less than 10 %. The arrays above

@@ -196,6 +196,8 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
     for c in (ctx, getattr(ctx, "physics", None)):
         if c is not None and hasattr(c, "s_blur_mm"):
             c.s_blur_mm = np.asarray(table.blur_mm, dtype=float)
+        if c is not None and hasattr(c, "s_light_deg"):
+            c.s_light_deg = np.asarray(table.light_angle_deg, dtype=float)
     return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
                     y_mm=table.width_mm[idx].copy(), sd_mm=table.width_sd_mm[idx].copy(),
                     gap_mm=gap, ctx=ctx, missing_idx=missing_rows(table, samples, ctx))

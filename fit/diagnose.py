@@ -31,7 +31,8 @@ from fit.covariates import CovariateScore, Covariates, compute_covariates, score
 #: scan_bias is the measurement's own calibration error, which a user adds to widen the
 #: intervals (it would soak up any static width-dependent signal of the physics); the
 #: view effects are the picture's (they would soak up bed tilt and heading).
-NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias", "view_xy", "view_heading", "view_glare", "view_blur"})
+NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias", "view_xy", "view_heading", "view_glare", "view_blur",
+                            "view_light"})
 #: Nuisances of the picture (fit/effects.py ViewXY, ViewHeading, ViewGlare, ViewBlur) the trust
 #: verdict's structure check adds for a geometric covariate (fit/nuisance.py
 #: structure_check); the blur across a bead follows both its place and its direction.

@@ -670,6 +670,47 @@ class ViewBlur(Effect):
         return w + p["k"] * ctx.cache[key]
 
 
+@register_effect
+class ViewLight(Effect):
+    """The picture's apparent width depending on the flank's angle to the scan's light, a
+    measurement nuisance (never proposed by ``diagnose``): beads whose glossy flank faces the
+    light read wider than beads that run along it, by a step rather than a smooth function
+    of the heading, and one offset for all beads (``scan_bias``) cannot take it:
+
+        w_measured = w + o_k   for a station whose angle a lies in band k = [15 k, 15 k + 15) deg,
+                               k = 0..3; nothing for a >= 60 deg or unknown               (mm)
+
+    a: the angle between the station's flank normal and the light's axis (deg, the widths
+    CSV's ``light_angle_deg``, measure/glare.py; 0 = the flank faces the light). Measured on
+    bench_e2e's back-pressure flatbed renders: beads whose flank faces the lamp read ~2.5 um
+    wider than the rest and pulled Kb 7 % high (fit/influence.py). With this effect the MAP
+    Kb moved 0.004 towards the truth on 7 of 7 seeds with the axis given (a heading-based
+    prototype), and 0.0008 and 0.005 on seeds 0 and 1 with the measured axis (89.1 and 88.9
+    deg, truth 90); neither the default nor in the structure check until bench_e2e's 40
+    seeds say how its intervals cover. Priors normal(0, 5 um). All zero: absent.
+    """
+
+    name = "view_light"
+    BAND_DEG = 15.0
+    params = tuple(Param(f"o{k}_mm", "mm", 0.0, -0.05, 0.05, ("normal", 0.0, 0.005),
+                         doc=f"apparent width offset where the flank is {15 * k}-{15 * k + 15} deg from the light")
+                   for k in range(4))
+
+    def width(self, ctx, w, p):
+        a = getattr(ctx, "s_light_deg", None)
+        if a is None:
+            return w
+        key = "view_light_band"
+        if key not in ctx.cache:
+            a = np.asarray(a, dtype=float)
+            ctx.cache[key] = np.where(np.isfinite(a), np.floor(np.nan_to_num(a, nan=99.0) / self.BAND_DEG), 99)
+        band = ctx.cache[key]
+        out = w
+        for k in range(4):
+            out = out + p[f"o{k}_mm"] * (band == k)
+        return out
+
+
 # -----------------------------------------------------------------------------------
 # User effects
 

@@ -83,6 +83,12 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     # the blur each width was read with: the apparent width of a rounded bead depends on it
     # (fit/effects.py ViewBlur)
     table.blur_mm = np.asarray(meas.blur_mm, dtype=float).copy()
+    # where the glare comes from: each station's angle to the light, for the fit's
+    # view_light (measure/glare.py)
+    from measure.glare import angle_to_light_deg, light_axis
+    axis = light_axis(meas.nx, meas.ny, meas.glare_streak) if meas.glare_streak is not None else None
+    if axis is not None:
+        table.light_angle_deg = angle_to_light_deg(meas.nx, meas.ny, axis)
     cal = apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=meas.blur_plane_px,
                                      test_measurement=meas, colour_axis=channel)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
@@ -119,6 +125,8 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "flags": dict(sorted(flags.items())),
         # valid stations whose edge pair carries a glare streak on one flank (measure/edges.py)
         "glare_streak_stations": int(meas.glare_streak[ok].sum()) if meas.glare_streak is not None else 0,
+        # the light's axis as a bed direction (deg, 0-180) when the streaks agree on one
+        "light_axis_deg": round(float(np.degrees(axis)) % 180.0, 1) if axis is not None else None,
         "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
         "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
         "blur_plane_px": [float(v) for v in meas.blur_plane_px],

@@ -15,6 +15,9 @@ CSV columns (README "Widths CSV"):
                  track, a string or another line, ...)
     blur_mm      optional: the edge blur (Gaussian sd, mm across the track) the width was
                  read with; empty when unknown (tables written before it, truths)
+    light_angle_deg  optional: angle (deg, 0-90) between the station's flank normal and the
+                 axis of the light that makes the scan's glare streaks (measure/glare.py);
+                 empty when the scan has no coherent glare
 """
 from __future__ import annotations
 
@@ -30,7 +33,7 @@ from calib.fileio import atomic_write_text
 
 COLUMNS = ("track", "s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm", "valid", "flag")
 #: Columns a table may lack (read as NaN).
-OPTIONAL = ("blur_mm",)
+OPTIONAL = ("blur_mm", "light_angle_deg")
 
 
 @dataclass
@@ -45,11 +48,14 @@ class WidthTable:
     valid: np.ndarray
     flag: np.ndarray = field(default=None)
     blur_mm: np.ndarray = field(default=None)
+    light_angle_deg: np.ndarray = field(default=None)
 
     def __post_init__(self):
         n = len(self.track)
         self.blur_mm = (np.full(n, np.nan) if self.blur_mm is None
                         else np.asarray(self.blur_mm, dtype=float).reshape(n))
+        self.light_angle_deg = (np.full(n, np.nan) if self.light_angle_deg is None
+                                else np.asarray(self.light_angle_deg, dtype=float).reshape(n))
         self.track = np.asarray(self.track, dtype=np.int64)
         for name in ("s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=float).reshape(n))
@@ -71,11 +77,11 @@ class WidthTable:
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(COLUMNS + OPTIONAL)
         for i in range(len(self)):
-            b = self.blur_mm[i]
+            b, a = self.blur_mm[i], self.light_angle_deg[i]
             w.writerow([int(self.track[i]), f"{self.s_mm[i]:.4f}", f"{self.x_mm[i]:.4f}",
                         f"{self.y_mm[i]:.4f}", f"{self.t_s[i]:.5f}", f"{self.width_mm[i]:.5f}",
                         f"{self.width_sd_mm[i]:.5f}", int(self.valid[i]), self.flag[i] or "",
-                        f"{b:.5f}" if np.isfinite(b) else ""])
+                        f"{b:.5f}" if np.isfinite(b) else "", f"{a:.1f}" if np.isfinite(a) else ""])
         return buf.getvalue()
 
     def save(self, path) -> Path:
