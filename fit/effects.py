@@ -638,6 +638,23 @@ class ViewGlare(Effect):
         return w + p["amp_mm"] * np.exp(p["kappa"] * (np.cos(2.0 * (th - p["theta0_rad"])) - 1.0))
 
 
+def _station_column(ctx, attr: str, key: str, derive):
+    """A per-station column the measurement gave the context (``s_blur_mm``, ``s_light_deg``;
+    None when the widths table had none), transformed by ``derive`` once per context."""
+    v = getattr(ctx, attr, None)
+    if v is None:
+        return None
+    if key not in ctx.cache:
+        ctx.cache[key] = derive(np.asarray(v, dtype=float))
+    return ctx.cache[key]
+
+
+def _about_median(s):
+    """s minus its median over the finite values; 0 where s is not finite."""
+    ok = np.isfinite(s)
+    return np.where(ok, s - (np.median(s[ok]) if ok.any() else 0.0), 0.0)
+
+
 @register_effect
 class ViewBlur(Effect):
     """The picture's apparent width depending on the blur each width was read with, a
@@ -659,15 +676,8 @@ class ViewBlur(Effect):
     params = (Param("k", "mm/mm", 0.0, -3.0, 3.0, "uniform", doc="apparent width per mm of edge blur"),)
 
     def width(self, ctx, w, p):
-        s = getattr(ctx, "s_blur_mm", None)
-        if s is None:
-            return w
-        key = "view_blur_ds"
-        if key not in ctx.cache:
-            s = np.asarray(s, dtype=float)
-            ok = np.isfinite(s)
-            ctx.cache[key] = np.where(ok, s - (np.median(s[ok]) if ok.any() else 0.0), 0.0)
-        return w + p["k"] * ctx.cache[key]
+        ds = _station_column(ctx, "s_blur_mm", "view_blur_ds", _about_median)
+        return w if ds is None else w + p["k"] * ds
 
 
 @register_effect
@@ -697,14 +707,10 @@ class ViewLight(Effect):
                    for k in range(4))
 
     def width(self, ctx, w, p):
-        a = getattr(ctx, "s_light_deg", None)
-        if a is None:
+        band = _station_column(ctx, "s_light_deg", "view_light_band",
+                               lambda a: np.floor(np.nan_to_num(a, nan=99.0) / self.BAND_DEG))
+        if band is None:
             return w
-        key = "view_light_band"
-        if key not in ctx.cache:
-            a = np.asarray(a, dtype=float)
-            ctx.cache[key] = np.where(np.isfinite(a), np.floor(np.nan_to_num(a, nan=99.0) / self.BAND_DEG), 99)
-        band = ctx.cache[key]
         out = w
         for k in range(4):
             out = out + p[f"o{k}_mm"] * (band == k)
