@@ -42,6 +42,8 @@ from measure.table import WidthTable
 from patterns.manifest import sample_points
 
 DT_S = 0.001
+#: mm of prime line before the probe's first track (fit.hidden.probe_manifest)
+PRIME_MM = 60.0
 FOOTPRINT_SD_MM = 0.12
 
 #: foreign effect -> its parameters (sizes comparable to fit/hidden.py's cases)
@@ -188,7 +190,10 @@ def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01) -> For
     from fit.hidden import probe_manifest
 
     rng = np.random.default_rng(seed)
-    man = probe_manifest()
+    # a prime line first: the two printers start their extruder's state differently (the
+    # library's dead band pushed forward, this one's in the middle of its play), and no
+    # real print's starting state is known either; its purge line sets it
+    man = probe_manifest(prime_mm=PRIME_MM)
     tau = 0.35 * float(np.exp(0.2 * rng.standard_normal()))
     p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN[hidden].items()}
     a1, h1, smp = simulate(man, tau, hidden, p)

@@ -10,7 +10,8 @@ bed (bed tilt), alternating direction (heading), one commanded width per track s
 track slow (20 mm/s) for its first part and then fast (30-140 mm/s, speed sweep for
 nonlinear flow and gear slip; the flow step is the linear-advance transient of seed 001),
 with a mid-track stop of a few seconds (seed 000 ooze and its thermal tail) and a
-retraction between tracks (backlash acts on the reversal). The head follows trapezoidal
+retraction between tracks (backlash acts on the reversal), optionally after a prime line
+that sets the extruder's state as a real print's purge line does. The head follows trapezoidal
 speed profiles (constant acceleration), the extruder follows the head at constant width
 (ve = A(w, h) v / Af, fit/geometry.py), sampled every <= 0.25 mm and <= 5 ms as the
 Timeline contract asks.
@@ -79,8 +80,17 @@ def probe_printer() -> dict:
 def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float = 0.2,
                    accel_mm_s2: float = 1500.0, stop_s: float = 3.0, slow_mm_s: float = 20.0,
                    fast_mm_s=(30.0, 60.0, 100.0, 140.0), widths_mm=(0.40, 0.55, 0.70, 0.85),
-                   gap_mm: float = 8.0, retract_mm: float = 1.0, printer: dict | None = None) -> Manifest:
-    """The probe print described in the module docstring, as a Manifest with its timeline."""
+                   gap_mm: float = 8.0, retract_mm: float = 1.0, prime_mm: float = 0.0,
+                   printer: dict | None = None) -> Manifest:
+    """The probe print described in the module docstring, as a Manifest with its timeline.
+
+    ``prime_mm``: a prime line (not a track: nothing is measured on it) printed at
+    ``slow_mm_s`` before the first track, as a real print's purge line. Without it the
+    first track depends on where the extruder's state begins, which no print can know: the
+    library's dead band starts pushed forward, another printer's may start in the middle
+    of its play, and the probe's first track then read 0.58 mm apart at its start with the
+    same physics (bench/foreign_printer.py, backlash 0.8 mm; 60 mm of prime: 0 um). Off by
+    default: data made by the library itself starts where the library does."""
     printer = dict(printer or probe_printer())
     af = filament_area_mm2(printer["filament_diameter_mm"])
     x0 = -length_mm / 2
@@ -95,6 +105,33 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
                                           np.full(len(tt), trk), ss)):
             nodes[k].append(np.asarray(a, dtype=float))
 
+    def travel(t, pos, to):
+        """Travel at 150 mm/s (retracted, no extrusion) from pos to ``to``; the end time."""
+        d = float(np.hypot(to[0] - pos[0], to[1] - pos[1]))
+        nt = max(2, int(np.ceil(d / 150.0 / 0.005)) + 1)
+        tt = t + np.linspace(0, d / 150.0, nt)
+        emit(tt, np.linspace(pos[0], to[0], nt), np.linspace(pos[1], to[1], nt), np.full(nt, 150.0),
+             np.zeros(nt), np.full(nt, e), -1, np.full(nt, np.nan))
+        return tt[-1]
+
+    def move_e(t, at, sign):
+        """Retract (sign -1) or unretract (+1) ``retract_mm`` in place at 30 mm/s; (t, e) after."""
+        tt = t + np.linspace(0, retract_mm / 30.0, 8)[1:]
+        emit(tt, np.full(7, at[0]), np.full(7, at[1]), np.zeros(7), np.full(7, sign * 30.0),
+             e + sign * 30.0 * (tt - t), -1, np.full(7, np.nan))
+        return tt[-1], e + sign * retract_mm
+
+    if prime_mm > 0:
+        start = (x0, y0 - gap_mm)
+        t = travel(t, pos, start)
+        area = float(bead_area_mm2(widths_mm[0], height_mm))
+        nt = int(np.ceil(prime_mm / slow_mm_s / 0.004)) + 1
+        tq = np.linspace(0.0, prime_mm / slow_mm_s, nt)
+        emit(t + tq, x0 + slow_mm_s * tq, np.full(nt, start[1]), np.full(nt, slow_mm_s),
+             np.full(nt, area * slow_mm_s / af), e + area * slow_mm_s * tq / af, -1, np.full(nt, np.nan))
+        t, e = t + tq[-1], e + area * prime_mm / af
+        pos = np.array([x0 + prime_mm, start[1]])
+        t, e = move_e(t, pos, -1.0)
     for i in range(n_tracks):
         v_fast = fast_mm_s[i % len(fast_mm_s)]
         w = widths_mm[(i + i // len(fast_mm_s)) % len(widths_mm)]
@@ -102,16 +139,8 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
         y = y0 + i * gap_mm
         xa, xb = (x0, x0 + length_mm) if forward else (x0 + length_mm, x0)
         # travel (retracted) to the track start, then unretract in place
-        d = float(np.hypot(xa - pos[0], y - pos[1]))
-        nt = max(2, int(np.ceil(d / 150.0 / 0.005)) + 1)
-        tt = t + np.linspace(0, d / 150.0, nt)
-        emit(tt, np.linspace(pos[0], xa, nt), np.linspace(pos[1], y, nt), np.full(nt, 150.0),
-             np.zeros(nt), np.full(nt, e), -1, np.full(nt, np.nan))
-        t = tt[-1]
-        tt = t + np.linspace(0, retract_mm / 30.0, 8)[1:]
-        emit(tt, np.full(7, xa), np.full(7, y), np.zeros(7), np.full(7, 30.0),
-             e + 30.0 * (tt - t), -1, np.full(7, np.nan))
-        t, e = tt[-1], e + retract_mm
+        t = travel(t, pos, (xa, y))
+        t, e = move_e(t, (xa, y), 1.0)
         # the track: speed profile over arc length with accel limits and a stop
         s_slow, s_stop = 0.25 * length_mm, 0.65 * length_mm
         ds = 0.02
@@ -151,10 +180,7 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
                             params={"v_fast_mm_s": v_fast, "width_mm": w,
                                     "stop_s_mm": float(s[istop])}))
         # retract at the end, in place
-        tt = t + np.linspace(0, retract_mm / 30.0, 8)[1:]
-        emit(tt, np.full(7, xb), np.full(7, y), np.zeros(7), np.full(7, -30.0),
-             e - 30.0 * (tt - t), -1, np.full(7, np.nan))
-        t, e = tt[-1], e - retract_mm
+        t, e = move_e(t, (xb, y), -1.0)
         pos = np.array([xb, y])
     arrays = {k: np.concatenate(v) for k, v in nodes.items()}
     # drop exact duplicate times at phase joins (keep the later node: its E is current)
