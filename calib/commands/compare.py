@@ -10,7 +10,7 @@ from calib.errors import UserError
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "compare", help="fit several models to one widths table and compare them",
-        description="Fit each model (MAP with the AR(1) likelihood of `calib fit`, then emcee "
+        description="Fit each model (MAP with the noise model of `calib fit`, then emcee "
                     "run to convergence + PSIS-LOO unless --fast) to "
                     "the measured widths and print a table: residual RMS (mm), reduced "
                     "chi-square, BIC, PSIS-LOO elpd and its se, the differences to the best "

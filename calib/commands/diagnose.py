@@ -70,7 +70,7 @@ def format_diagnosis(doc: dict) -> str:
            "beyond chance):"]
     for c in doc["covariates"][:6]:
         out.append(f"  {c['name']:<28} {c['score']:.3f}   (R^2 {c['r2']:.3f}, p {c['p_value']:.3g})")
-    out += ["", "candidate effects (drop in BIC, AR(1) likelihood; RMS after):"]
+    out += ["", "candidate effects (drop in BIC with the noise model of `calib fit`; RMS after):"]
     for c in doc["candidates"]:
         if c.get("error"):
             out.append(f"  {c['effect']:<16} failed: {c['error']}")

@@ -38,7 +38,7 @@ def add_parser(sub):
     p.add_argument("--effects", help="Python file with user Effect classes")
     p.add_argument("--student-t", type=float, default=None, metavar="NU",
                    help="Student-t noise with NU degrees of freedom (robust to outliers)")
-    p.add_argument("--no-ar1", action="store_true", help="treat samples as independent (not advised)")
+    p.add_argument("--no-ar1", action="store_true", help="the bead's wobble uncorrelated along the track: samples independent (not advised)")
     p.add_argument("--ignore-missing", action="store_true",
                    help="drop the stations flagged 'missing' (no bead seen) instead of fitting "
                         "them as beads narrower than the scan can see (default: fit them)")
