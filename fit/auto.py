@@ -30,6 +30,8 @@ class AutoStep:
     bic: float
     delta_bic: float | None = None
     chi2_nu_bead: float = float("nan")
+    #: effects that explained the data as well as the one added (fit.diagnose.TIE_DELTA_BIC)
+    tied: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -47,7 +49,8 @@ class AutoResult:
         out = [f"{'model':40s} {'RMS (um)':>9s} {'chi2_nu':>9s} {'chi2_nu_bead':>13s} {'Delta BIC':>10s}"]
         for s in self.steps:
             db = "" if s.delta_bic is None else f"{s.delta_bic:10.1f}"
-            out.append(f"{s.model:40s} {1000 * s.rms_mm:9.1f} {s.chi2_nu:9.2f} {s.chi2_nu_bead:13.2f} {db:>10s}")
+            tie = f"  (as good: {', '.join(s.tied)}; the data do not tell them apart)" if s.tied else ""
+            out.append(f"{s.model:40s} {1000 * s.rms_mm:9.1f} {s.chi2_nu:9.2f} {s.chi2_nu_bead:13.2f} {db:>10s}{tie}")
         out.append(self.stop)
         return out
 
@@ -107,6 +110,6 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
             break
         spec, base = best.spec, best.fit
         res.steps.append(AutoStep(spec, base.rms_mm, base.chi2_nu, base.bic, best.delta_bic,
-                                  base.chi2_nu_bead))
+                                  base.chi2_nu_bead, d.tied if best.effect == d.best else []))
     res.model = spec
     return res

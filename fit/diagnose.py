@@ -58,8 +58,13 @@ EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
     "spread": ("time_since_flow_change_s",),
 }
 
-#: Delta BIC (AR(1) likelihood) above which an effect is called supported.
+#: Delta BIC above which an effect is called supported.
 SUPPORTED_DELTA_BIC = 10.0
+#: Two candidates whose Delta BIC differ by less than this are a tie: a BIC difference
+#: of 0-2 is "not worth more than a bare mention" (Kass & Raftery 1995, J. Am. Stat.
+#: Assoc. 90, 773). On the foreign printer's backlash (bench_discover_foreign seed 2)
+#: kalico_tanh led backlash by 1.6 and was named alone.
+TIE_DELTA_BIC = 2.0
 #: Reduced chi-square left by the best candidate above which it "explains only part"
 #: (issue #11: "where no library form fits, chi2_nu > 1.5 after"). The covariates are
 #: then scored again on what that candidate leaves, and the verdict names that one.
@@ -103,6 +108,8 @@ class Diagnosis:
     #: explains part: chi2_nu after > NO_FIT_CHI2), and the covariate the verdict names
     covariates_after: list[CovariateScore] = field(default_factory=list)
     named_covariate: str = ""
+    #: candidates the data do not tell from the best (Delta BIC within TIE_DELTA_BIC of it)
+    tied: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict:
         def num(x):
@@ -129,6 +136,7 @@ class Diagnosis:
             "covariates_after": [{"name": s.name, "score": num(s.score), "r2": num(s.r2),
                                   "p_value": num(s.p_value)} for s in self.covariates_after],
             "named_covariate": self.named_covariate,
+            "tied": list(self.tied),
             "best": self.best,
             "verdict": self.verdict,
             "command": self.command,
@@ -228,13 +236,22 @@ def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
         ev = (f"; consistent with the residual pattern: {agree[0].name} scores {agree[0].score:.2f}"
               if agree else f"; {cov_txt}")
         runner = ""
-        if len(ok) > 1:
+        d.tied = [c.effect for c in ok[1:] if best.delta_bic - c.delta_bic < TIE_DELTA_BIC]
+        if d.tied:
+            others = [c for c in ok[1:] if c.effect in d.tied]
+            runner = (" " + " and ".join(f"{c.effect} (Delta BIC {c.delta_bic:.1f})" for c in others)
+                      + f" explain{'s' if len(others) == 1 else ''} it as well: within {TIE_DELTA_BIC:g} of "
+                      f"the best, these data do not tell them apart. Compare them with `calib compare "
+                      f"--models {best.spec} {' '.join(c.spec for c in others)}`, or print a test "
+                      "that separates them.")
+        elif len(ok) > 1:
             runner = f" Next best: {ok[1].effect} (Delta BIC {ok[1].delta_bic:.1f})."
         d.command = f"{command_prefix} --model {best.spec}{effects_arg}"
         loo = ""
         if np.isfinite(best.delta_elpd_loo):
             loo = f", PSIS-LOO gains {best.delta_elpd_loo:.1f} +- {best.delta_elpd_loo_se:.1f}"
-        d.verdict = (f"{head} Most likely missing: {best.effect}. Adding it lowers BIC by "
+        d.verdict = (f"{head} Most likely missing: {best.effect}"
+                     f"{' (or ' + ', '.join(d.tied) + ': a tie)' if d.tied else ''}. Adding it lowers BIC by "
                      f"{best.delta_bic:.1f}{loo}{ev}. RMS falls from {1000 * b.rms_mm:.1f} to "
                      f"{1000 * best.rms_mm_after:.1f} um, reduced chi-square from {b.chi2_nu:.2f} "
                      f"to {best.chi2_nu_after:.2f}.{runner} Fit it with: {d.command}")

@@ -178,3 +178,27 @@ def test_when_the_best_effect_explains_only_part_the_covariate_comes_from_what_i
     assert d.covariates_after and d.named_covariate == d.covariates_after[0].name
     assert d.named_covariate in {"flow_mm3_s", "extruder_speed_mm_s", "speed_mm_s", "width_nominal_mm"}
     assert d.named_covariate in d.verdict and d.to_json()["named_covariate"] == d.named_covariate
+
+
+def test_candidates_within_2_of_the_best_are_named_as_a_tie():
+    """Kass & Raftery: a BIC difference under 2 is not evidence; the verdict names both."""
+    from types import SimpleNamespace
+
+    from fit.diagnose import Candidate, Diagnosis, _verdict
+
+    base = SimpleNamespace(rms_mm=0.03, chi2_nu=7.6, n=900, corr_len_mm=19.0, n_eff=24.0, bic=-4600.0,
+                           params=dict)
+
+    def verdict(bics):
+        cands = [Candidate(e, f"pa+{e}", b, b, 0.012, 1.1) for e, b in bics]
+        d = Diagnosis(model="pa", base=base, covariates=[], candidates=cands, cov=None)
+        _verdict(d, "calib fit W --manifest M", "")
+        return d
+
+    d = verdict([("kalico_tanh", 61.7), ("backlash", 60.1), ("offset", 21.1)])
+    assert d.best == "kalico_tanh" and d.tied == ["backlash"]
+    assert "kalico_tanh (or backlash: a tie)" in d.verdict
+    assert "calib compare --models pa+kalico_tanh pa+backlash" in d.verdict
+    assert d.to_json()["tied"] == ["backlash"]
+    d = verdict([("kalico_tanh", 61.7), ("backlash", 59.6)])
+    assert d.tied == [] and "Next best: backlash (Delta BIC 59.6)" in d.verdict

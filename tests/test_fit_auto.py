@@ -53,3 +53,13 @@ def test_model_auto_on_the_cli_prints_the_chain_and_records_it(case, tmp_path, c
     text = capsys.readouterr().out
     assert "model search (--model auto):" in text and "pa+gear_slip" in text
     assert json.loads(out.read_text())["model"] == "pa+gear_slip"
+
+
+def test_a_step_added_from_a_tie_says_so_in_the_chain():
+    from fit.auto import AutoResult, AutoStep
+
+    r = AutoResult("pa+kalico_tanh", [AutoStep("pa", 0.03, 7.6, -4600.0),
+                                      AutoStep("pa+kalico_tanh", 0.02, 3.0, -4662.0, 61.7, 2.5, ["backlash"])])
+    lines = r.lines()
+    assert "as good: backlash" in lines[2] and "as good" not in lines[1]
+    assert r.to_json()["steps"][1]["tied"] == ["backlash"]
