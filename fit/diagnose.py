@@ -41,6 +41,9 @@ VIEW_COVARIATES: dict[str, tuple[str, ...]] = {
     "view_heading": ("heading_rad",),
     "view_glare": ("heading_rad",),
     "view_blur": ("x_mm", "y_mm", "r_mm", "heading_rad"),
+    # the flank's angle to the scan's light follows the heading (a flatbed's lamp: beads
+    # along y read 2.5 um narrower than along x on the back-pressure renders)
+    "view_light": ("heading_rad",),
 }
 
 #: The covariates each library effect leaves its mark on (for the verdict's evidence).

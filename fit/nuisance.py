@@ -55,11 +55,17 @@ def nuisance_check(make_problem, spec: str, map_values: dict, map_bic: float, ci
             for effect, start in NUISANCE.items() if effect not in split_spec(spec)]
 
 
-def _has_blur(problem) -> bool:
-    """Whether any scan of ``problem`` carries the measurement's per-station blur (the
-    widths CSV's ``blur_mm``; tables without it cannot be asked about ViewBlur)."""
+#: View effects that read a per-station column of the widths CSV (fit.context.SimContext
+#: attribute): asked only of scans that carry it
+VIEW_COLUMNS = {"view_blur": "s_blur_mm", "view_light": "s_light_deg"}
+
+
+def _has_column(problem, attr: str) -> bool:
+    """Whether any scan of ``problem`` carries a per-station column of the measurement
+    (``attr`` of its SimContext: the widths CSV's ``blur_mm``, ``light_angle_deg``) on at
+    least 10 stations; tables without it cannot be asked about the effect that reads it."""
     for sc in getattr(problem, "scans", ()):
-        b = getattr(getattr(sc, "ctx", None), "s_blur_mm", None)
+        b = getattr(getattr(sc, "ctx", None), attr, None)
         if b is not None and np.isfinite(np.asarray(b, dtype=float)).sum() >= 10:
             return True
     return False
@@ -97,7 +103,8 @@ def structure_check(make_problem, spec: str, covariate: str, map_values: dict, m
     """Do the values depend on what the residuals line up with? For each library effect
     that leaves its mark on ``covariate`` (fit.diagnose.EFFECT_COVARIATES) and is not in
     ``spec``, and for a covariate of where or which way the bead lies (x, y, r, heading)
-    the picture's own width patterns (fit/effects.py ViewXY, ViewHeading, ViewGlare, ViewBlur):
+    the picture's own width patterns (fit/effects.py ViewXY, ViewHeading, ViewGlare, ViewBlur,
+    ViewLight):
     :func:`refit_with` each. fit/trust.py reads the answer: when an effect that
     explains the structure decisively (Delta BIC >= DECISIVE_BIC) moves no value, the
     structure is a caution, not a problem. Why: on 12 MP phone renders at 35 deg the
@@ -109,7 +116,7 @@ def structure_check(make_problem, spec: str, covariate: str, map_values: dict, m
     effects = [e for e, covs in EFFECT_COVARIATES.items()
                if covariate in covs and e not in have and e not in NOT_CANDIDATES]
     effects += [e for e, covs in VIEW_COVARIATES.items() if covariate in covs and e not in have
-                and (e != "view_blur" or _has_blur(make_problem(spec)))]
+                and (e not in VIEW_COLUMNS or _has_column(make_problem(spec), VIEW_COLUMNS[e]))]
     out = []
     for e in effects:
         # an effect with a direction (view_glare's theta0) is started from several, the

@@ -152,3 +152,33 @@ def _heading_refits(sc):
     assert is_structured(rs) and rs["covariate"] == "heading_rad"
     refits = {r["effect"]: r for r in structure_check(problem, "pa", rs["covariate"], m.values, m.bic, ci95)}
     return problem, refits, (m, rs, ci95)
+
+
+def test_a_width_that_follows_the_flanks_angle_to_the_light_is_the_pictures_and_leaves_tau_alone():
+    """ViewLight (fit/effects.py: offsets per 15-deg band of the flank's angle to the scan's
+    light, the widths CSV's `light_angle_deg`) on a known answer of another form: beads whose
+    flank faces the light read up to 6 um wider, a smooth logistic step at 35 deg rather than
+    the effect's bands. `pa`'s residuals line up with the heading; the structure check asks
+    `view_light` (the widths carry the angle), which explains them decisively and leaves tau
+    inside its interval. A table without the column is not asked."""
+    from fit.nuisance import structure_check
+
+    sc = _scan("pa", {"pa.tau_s": 0.043}, 5)
+    t, man = sc.table, sc.manifest
+    h = np.degrees(np.abs(np.angle(np.exp(1j * sc.ctx.s_heading_rad))))      # 0-180 deg
+    angle = np.minimum(h, 180.0 - h)               # lamp along y: a bead along x faces it (0 deg)
+    extra = 0.006 / (1.0 + np.exp((angle - 35.0) / 4.0))
+    t.width_mm = t.width_mm + extra
+    t.light_angle_deg = angle
+    sc = scan_from_table(t, man, "lit")
+
+    problem, refits, (m, rs, ci95) = _heading_refits(sc)
+    assert refits["view_light"]["delta_bic"] >= DECISIVE_BIC and not refits["view_light"]["moved"]
+    o = fit_map(problem("pa+view_light"), seed=0, global_search=True).values
+    for k in range(4):                              # each band's offset: the mean of the step over it
+        band = (angle >= 15 * k) & (angle < 15 * k + 15) & t.valid
+        assert abs(o[f"view_light.o{k}_mm"] - extra[band].mean()) < 0.0015, (k, o, extra[band].mean())
+    t.light_angle_deg = np.full(len(t.width_mm), np.nan)
+    bare = scan_from_table(t, man, "no light column")
+    assert "view_light" not in [r["effect"] for r in structure_check(
+        lambda spec: make_problem(build_model(spec, PROF), bare), "pa", rs["covariate"], m.values, m.bic, ci95)]
