@@ -17,6 +17,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 #: Prior sd (mm) of scan_bias.b0_mm for widths that are not calibrated.
 UNCALIBRATED_SD_MM = 0.03
 #: Floor (mm) on the prior sd from a calibration.
@@ -62,13 +64,39 @@ def prior_overrides(states: list[dict], param_names) -> dict[str, dict]:
     return out
 
 
-def auto_start(scan: str, cal: dict | None) -> tuple[str, dict[str, dict]]:
+#: share of a scan's stations the reference band (>= 60 deg from the light) and one other
+#: band of view_light must each hold for `--model auto` to start with it
+LIGHT_MIN_SHARE = 0.1
+
+
+def light_varies(angle_deg) -> bool:
+    """Whether the flank's angle to the scan's light (the widths CSV's ``light_angle_deg`` at
+    the scan's stations, deg; None or NaN: unknown) is known on half the stations and spans
+    view_light's bands (fit/effects.py): the reference beyond 60 deg and one band within it
+    each hold >= LIGHT_MIN_SHARE. A print of parallel lines has one angle for every bead, and
+    the band offsets would then be one offset for all, read as flow or back-pressure."""
+    if angle_deg is None:
+        return False
+    a = np.asarray(angle_deg, dtype=float)
+    ok = np.isfinite(a)
+    if a.size == 0 or ok.mean() < 0.5:
+        return False
+    share = np.bincount(np.minimum(a[ok] // 15.0, 4).astype(int), minlength=5) / ok.sum()
+    return bool(share[4] >= LIGHT_MIN_SHARE and share[:4].max() >= LIGHT_MIN_SHARE)
+
+
+def auto_start(scan: str, cal: dict | None, light: bool = False) -> tuple[str, dict[str, dict]]:
     """(base model, prior overrides) where ``--model auto`` starts on a scan whose
     measurement block is ``cal``: ``pa+scan_bias`` with the prior above when the widths are
-    apparent widths (its offset would otherwise be read as back-pressure or flow), else ``pa``."""
+    apparent widths (its offset would otherwise be read as back-pressure or flow), else
+    ``pa``; ``+view_light`` when ``light`` (:func:`light_varies`): beads whose flank faces a
+    flatbed's lamp read ~2.5 um wider, and on bench_e2e's back-pressure scans that pulled Kb
+    high on every seed (with it: Kb 0.0035 lower on 13 of 13 seeds, tau 0.0006 s higher,
+    the same coverage)."""
+    tail = "+view_light" if light else ""
     if cal is None or cal.get("applied"):
-        return "pa", {}
-    return "pa+scan_bias", prior_overrides([{"scan": scan, "calibration": cal}], ["scan_bias.b0_mm"])
+        return "pa" + tail, {}
+    return "pa+scan_bias" + tail, prior_overrides([{"scan": scan, "calibration": cal}], ["scan_bias.b0_mm"])
 
 
 def notes(states: list[dict], has_scan_bias: bool) -> list[str]:

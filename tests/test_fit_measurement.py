@@ -5,6 +5,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from calib.commands.fit import run_fit
@@ -99,3 +100,19 @@ def test_search_priors_apply_only_to_models_that_have_the_parameter():
     without = _problem(build_model("pa", c.manifest.printer), scan, priors=pri)
     assert _prior(with_sb, "scan_bias.b0_mm").sd == 0.03
     assert "scan_bias.b0_mm" not in without.param_names
+
+
+def test_model_auto_starts_with_view_light_only_where_the_light_angle_spans_its_bands():
+    """A spiral's beads meet the lamp at every angle: view_light's band offsets are apart
+    from the reference beyond 60 deg. Parallel lines share one angle, where the offsets would
+    be one offset for all (read as flow or back-pressure); an unknown angle is no light."""
+    spiral = np.degrees(np.abs(np.arcsin(np.sin(np.linspace(0, 20 * np.pi, 4000)))))   # 0-90 deg
+    assert measurement.light_varies(spiral)
+    assert not measurement.light_varies(np.full(4000, 3.0))                 # parallel lines
+    assert not measurement.light_varies(np.full(4000, 75.0))
+    assert not measurement.light_varies(np.where(np.arange(4000) < 2500, np.nan, spiral))   # mostly unknown
+    assert not measurement.light_varies(None) and not measurement.light_varies(np.array([]))
+    assert measurement.auto_start("s", CAL, light=True) == ("pa+view_light", {})
+    base, pri = measurement.auto_start("s", UNCAL, light=True)
+    assert base == "pa+scan_bias+view_light" and set(pri) == {"scan_bias.b0_mm"}
+    assert measurement.auto_start("s", UNCAL)[0] == "pa+scan_bias"

@@ -179,7 +179,8 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     ``missing`` False (--ignore-missing): the search does not fit the missing stations either.
     The chain starts from ``pa``, or from ``pa+scan_bias`` when `calib measure` said the
     widths are apparent widths (fit/measurement.py: an unknown offset of tens of um passes
-    for back-pressure or flow otherwise), with the same scan_bias prior `calib fit` uses;
+    for back-pressure or flow otherwise), with the same scan_bias prior `calib fit` uses,
+    and with ``+view_light`` when the widths carry the flank's angle to the light over its bands;
     ``priors``: the user's priors file, applied to every model that has the parameter."""
     from fit import measurement
     from fit.auto import auto_model
@@ -199,7 +200,8 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     scan = observe(manifest, WidthTable.load(widths))
     if not missing:
         scan.missing_idx = scan.missing_idx[:0]
-    base, pri = measurement.auto_start(scan.name, measurement.load_calibration(widths))
+    base, pri = measurement.auto_start(scan.name, measurement.load_calibration(widths),
+                                       measurement.light_varies(scan.table.light_angle_deg[scan.table.valid]))
     user = load_priors_file(priors) if priors else {}
     # the search applies a prior to the models that have it; a name no effect has is a typo
     known = {f"{c.name}.{p.name}" for c in [*REGISTRY.values(), *extra] for p in c.params}
