@@ -696,8 +696,8 @@ class ViewLight(Effect):
     wider than the rest and pulled Kb 7 % high (fit/influence.py). With this effect the MAP
     Kb moved 0.004 towards the truth on 7 of 7 seeds with the axis given (a heading-based
     prototype), and 0.0008 and 0.005 on seeds 0 and 1 with the measured axis (89.1 and 88.9
-    deg, truth 90); on 37 seeds the posterior Kb fell on every one (+6.1 % -> +4.3 % against
-    the truth) and its coverage rose from 89 to 95 %. `--model auto` starts with it where
+    deg, truth 90); on 40 seeds the posterior Kb fell on 39 (+6.7 % -> +4.9 % against the
+    truth) and its 90 % coverage rose from 85 to 90 %. `--model auto` starts with it where
     the angle spans its bands (fit/measurement.py); the trust verdict's structure check asks
     it when the residuals follow the heading and the widths carry the angle
     (fit/nuisance.py), as the other view effects. Priors normal(0, 5 um). All zero: absent.

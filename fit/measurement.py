@@ -91,8 +91,8 @@ def auto_start(scan: str, cal: dict | None, light: bool = False) -> tuple[str, d
     apparent widths (its offset would otherwise be read as back-pressure or flow), else
     ``pa``; ``+view_light`` when ``light`` (:func:`light_varies`): beads whose flank faces a
     flatbed's lamp read ~2.5 um wider, and on bench_e2e's back-pressure scans that pulled Kb
-    high on every seed (with it, seeds 0-36: Kb 0.0034 lower on 37 of 37, tau 0.0007 s
-    higher on 34, Kb's 90 % coverage 89 -> 95 %, the others unchanged)."""
+    high (with it, 40 seeds: Kb 0.0034 lower on 39, tau 0.0007 s higher on 37, Kb's 90 %
+    coverage 85 -> 90 %, tau's 95 % both)."""
     tail = "+view_light" if light else ""
     if cal is None or cal.get("applied"):
         return "pa" + tail, {}
