@@ -22,7 +22,10 @@ A = (w - h) h + pi h^2 / 4 (fit/geometry.py). What differs:
   backpressure    sub-linear power law Kb w_r (w/w_r)^0.5     Kb w_sat tanh(w/w_sat)
   backlash        play of width be followed by an elastic     dead band on reversal
                   zone (first-order lag, 40 ms)
-  bed             quadratic bowl h(r) = h0 (1 + c r^2)        plane (bed_tilt)
+  bed             quadratic bowl h(r) = h0 (1 + c r^2)        plane (bed_tilt); 3 x 3 grid
+                                                              interpolated bilinearly
+                                                              (bed_mesh: chords, not the
+                                                              parabola)
   gear_slip       slip grows with the filament pressure       no library form (the
                   ve_eff = ve (1 - k P)                       example user effect is
                                                               speed-dependent)
@@ -61,7 +64,7 @@ FAMILY = {
     "nonlinear": {"nonlinear", "bernoulli", "kalico_tanh", "kalico_recip", "offset"},
     "backpressure": {"backpressure"},
     "backlash": {"backlash"},
-    "bed": {"bed_tilt"},
+    "bed": {"bed_tilt", "bed_mesh"},
     "gear_slip": {"gear_slip"},
 }
 #: covariates that point at the foreign effect

@@ -57,6 +57,7 @@ EFFECT_COVARIATES: dict[str, tuple[str, ...]] = {
     "offset": ("time_since_stop_s", "flow_mm3_s"),
     "flow_gain": ("width_nominal_mm", "flow_mm3_s"),
     "bed_tilt": ("x_mm", "y_mm"),
+    "bed_mesh": ("x_mm", "y_mm", "r_mm"),
     "heading": ("heading_rad",),
     "spread": ("time_since_flow_change_s",),
 }

@@ -466,6 +466,38 @@ class BedTilt(Effect):
 
 
 @register_effect
+class BedMesh(Effect):
+    """Layer height over a bed that is not flat: a 3 x 3 grid of height offsets over the
+    stations' extent, interpolated bilinearly between its nodes (as Marlin's
+    AUTO_BED_LEVELING_BILINEAR applies a probed 3 x 3 grid):
+
+        h = h0 + sum_ij dz_ij * B_i(x) * B_j(y)
+
+    B: the piecewise-linear hat functions of the nodes at the lowest, middle and highest
+    station x (resp. y). A warped, domed or bowl-shaped bed (a heated plate bulges) that a
+    plane (bed_tilt) cannot follow; the width follows from the same area at the new height,
+    as for bed_tilt. Nine parameters: in `calib diagnose` it must explain far more than a
+    plane to be named over it. dz = 0: absent.
+    """
+
+    name = "bed_mesh"
+    params = tuple(Param(f"dz{i}{j}_mm", "mm", 0.0, -0.1, 0.1, "uniform",
+                         doc=f"height offset at grid node x{i} y{j} (0: lowest station x/y, 2: highest)")
+                   for j in range(3) for i in range(3))
+
+    def height(self, ctx, h, p):
+        if "bed_mesh_basis" not in ctx.cache:
+            def hats(v):
+                lo, hi = float(np.min(v)), float(np.max(v))
+                u = np.clip((v - lo) / max(hi - lo, 1e-9) * 2.0, 0.0, 2.0)
+                return np.stack([np.clip(1.0 - np.abs(u - k), 0.0, 1.0) for k in range(3)], axis=1)
+            bx, by = hats(ctx.s_x_mm), hats(ctx.s_y_mm)
+            ctx.cache["bed_mesh_basis"] = np.einsum("si,sj->sji", bx, by).reshape(len(bx), 9)
+        dz = np.concatenate([p[q.name] for q in self.params], axis=1)      # (n_sets, 9)
+        return h + dz @ ctx.cache["bed_mesh_basis"].T
+
+
+@register_effect
 class Spread(Effect):
     """The bead smooths its own width along the track (surface tension rounds what the
     nozzle lays, the nozzle's flat land irons it):

@@ -229,6 +229,34 @@ def test_flow_gain_bed_tilt_heading():
     assert np.ptp(base[ok]) > 0.1
 
 
+def test_bed_mesh_is_bilinear_between_its_nodes_and_holds_a_plane():
+    """bed_mesh: heights interpolated bilinearly over a 3 x 3 grid on the stations' extent.
+    Known answers: nodes set from a plane give that plane everywhere (bed_tilt's widths);
+    nodes set from a bowl h0 c r^2 give its chords, above the bowl by at most h0 c (dx^2 +
+    dy^2) / 4 for node spacings dx, dy (linear interpolation of a parabola): the bowl's own
+    form is not in the library (bench/foreign_printer.py)."""
+    from fit.hidden import probe_manifest
+
+    ctx = SimContext.build(probe_manifest())
+    x, y = ctx.s_x_mm, ctx.s_y_mm
+    xn = np.linspace(x.min(), x.max(), 3)
+    yn = np.linspace(y.min(), y.max(), 3)
+    xc, yc = ctx.center_xy_mm
+    gx, gy = 0.0012, -0.0007
+    plane = [gx * (xn[i] - xc) + gy * (yn[j] - yc) for j in range(3) for i in range(3)]
+    w_mesh = build_model("pa+bed_mesh").predict(ctx, [0.05, *plane])[0]
+    w_tilt = build_model("pa+bed_tilt").predict(ctx, [0.05, gx, gy])[0]
+    ok = np.isfinite(w_tilt)
+    np.testing.assert_allclose(w_mesh[ok], w_tilt[ok], atol=1e-12)
+    c = 6e-5
+    bowl = [H * c * (xn[i] ** 2 + yn[j] ** 2) for j in range(3) for i in range(3)]
+    eff = build_model("pa+bed_mesh").effects[1]
+    h = eff.height(ctx, np.full((1, len(x)), H), {q.name: np.array([[v]]) for q, v in zip(eff.params, bowl)})[0]
+    above = h - H * (1 + c * (x ** 2 + y ** 2))
+    bound = H * c * ((xn[1] - xn[0]) ** 2 + (yn[1] - yn[0]) ** 2) / 4
+    assert above.min() > -1e-12 and above.max() <= bound + 1e-12 and above.max() > 0.5 * bound
+
+
 def test_user_effects_file(tmp_path):
     good = tmp_path / "mine.py"
     good.write_text(textwrap.dedent('''
