@@ -36,6 +36,13 @@ RANSAC_PX = 4.0
 #: Below this robust z (clarity) the tracks' polarity test gives way to the markers' (they
 #: were found in the plain or in the negative image); 0.1-0.5 on the 600 dpi spiral renders.
 POLARITY_CLEAR = 2.0
+#: Spread of the image scale over the print (max / min - 1) above which the picture is
+#: a photo whose lens distortion is estimated (a flatbed scan: < 1e-3)
+PERSPECTIVE = 0.02
+#: RMS corner misfit (px) of a detected marker, after the fit with the others, above which
+#: its corners are taken again from the alignment of its whole pattern (well-detected
+#: markers on the phone renders: 0.06-0.5 px)
+SUSPECT_PX = 1.0
 #: Offset of AprilTag-refined ArUco corners from the pixel-centre convention (px).
 APRILTAG_OFFSET_PX = 0.5
 
@@ -286,6 +293,13 @@ def _undistorted_homography(bed, img, center, f, k1, k2, ransac: bool, threshold
     return H, (mask.ravel() > 0) if mask is not None else np.ones(len(bed), bool)
 
 
+def _perspective(H, size, pts) -> float:
+    """Spread of the local scale over ``pts`` (max / min - 1): 0 for a scanner's affine
+    mapping, 0.2-0.7 for a phone at 25-35 deg."""
+    s = Camera(H=H, image_size=size).px_per_mm(pts[:: max(1, len(pts) // 200)])
+    return float(s.max() / s.min() - 1.0)
+
+
 def _bled(bed, ctr, bleed):
     """Marker corners (bed mm) as printed: each marker scaled about its centre by
     (1 + bleed_x, 1 + bleed_y). Raster-printed cells spread or shrink (over/under-extrusion,
@@ -386,7 +400,7 @@ def estimate_polarity(gray, project, pts, wid, nrm) -> tuple[float, float]:
 
 # -- the registration ---------------------------------------------------------------------
 def register(image, manifest, points=None, *, refine: bool = True,
-             distortion: bool | None = None, start_H=None) -> Registration:
+             distortion: bool | None = None, start_H=None, recovered=None) -> Registration:
     """Bed mm -> image px for ``image`` (gray float 0..1, or uint8) showing ``manifest``'s print.
 
     points      optional point hints: text ``"x,y=u,v;..."`` or (bed (N, 2), img (N, 2)).
@@ -395,6 +409,10 @@ def register(image, manifest, points=None, *, refine: bool = True,
                 corners misfit a pure homography by > 0.5 px, or point hints are used).
     start_H     a bed mm -> px homography to start from when there are neither fiducials
                 nor points (measure.autoreg; good to ~1 mm): method "auto".
+    recovered   {marker id: (4, 2) corners px} found by the guided search
+                (measure.fiducial_search), used beside the detected ones. When the
+                detector finds some but not all markers, register() runs that search on
+                its own pose and registers again with what it found.
     Raises UserError when there is nothing to register with or it fails.
     """
     gray = np.asarray(image, dtype=np.float32)
@@ -422,12 +440,22 @@ def register(image, manifest, points=None, *, refine: bool = True,
             ids, used, bed_c, neg = ids_m, used_m, bed_m, neg_m
             # back to original image coordinates; the corner order reverses with the flip
             img_c = [np.column_stack([W - 1 - c[:, 0], c[:, 1]]) for c in img_m]
+    recovered = dict(recovered or {})
+    fid_mm = {f.id: np.asarray(f.corners_mm, float).reshape(4, 2) for f in manifest.fiducials}
+    for i, c in sorted(recovered.items()):
+        if i in used:
+            img_c[used.index(i)] = np.asarray(c, float)
+        elif i in fid_mm:
+            used, bed_c, img_c = used + [i], bed_c + [fid_mm[i]], img_c + [np.asarray(c, float)]
     method = None
     bed_pts = img_pts = None
     if len(used) >= 2:
         method = "fiducials"
         bed_pts, img_pts = np.concatenate(bed_c), np.concatenate(img_c)
-        ctr_pts = np.repeat([b.mean(axis=0) for b in bed_c], 4, axis=0)
+        # a recovered marker's corners are the drawn ones (the whole pattern was aligned):
+        # its own corners as the "centre" leave it out of the bleed scale (_bled)
+        ctr_pts = np.concatenate([b if i in recovered else np.repeat(b.mean(axis=0)[None], 4, axis=0)
+                                  for i, b in zip(used, bed_c)])
         if len(used) < 4 and hint_bed is None:
             warnings.append(f"only {len(used)} fiducial(s) found; registration is less certain")
     elif hint_bed is not None:
@@ -472,9 +500,12 @@ def register(image, manifest, points=None, *, refine: bool = True,
         H0 = np.asarray(start_H, float) / start_H[2, 2]
         rms0 = np.inf
         mirrored = bool(np.linalg.det(H0[:2, :2]) > 0)      # a top-down view flips y
-    if distortion is None:
-        distortion = method in ("points", "auto") or rms0 > 0.5
     lay_pts, lay_w, lay_n = layout_points(manifest)
+    if distortion is None:
+        # a camera, not a scanner: the scale changes across the print (a flatbed's mapping
+        # is affine); corners alone cannot tell once they fit a homography (phone seed 9
+        # with its 4 markers: 0.4 px, k1 left at 0 and the pose 0.075 mm off; 0.015 with k1)
+        distortion = method in ("points", "auto") or rms0 > 0.5 or _perspective(H0, size, lay_pts) > PERSPECTIVE
     mp = _Mapping(H0, size, distortion, lay_pts)
     x = mp.x0()
     # Sanity: the layout must fall inside the image.
@@ -527,6 +558,24 @@ def register(image, manifest, points=None, *, refine: bool = True,
         err_px = np.sqrt(np.sum((cam.project(_bled(bed_pts, ctr_pts, bleed)) - img_pts) ** 2, axis=1))
         reg.corner_rms_px = float(np.sqrt(np.mean(err_px ** 2)))
         reg.residual_mm = float(np.sqrt(np.mean((err_px / cam.px_per_mm(bed_pts)) ** 2)))
+        if recovered:
+            reg.info["recovered_markers"] = sorted(int(i) for i in recovered if i in used)
+            return reg
+        # Two markers on one side leave the far side to the tracks (phone seed 9: 0.1 mm
+        # off, tau 6 % low; seed 3: 2 mm, every width wrong), and a marker detected with
+        # corners off (a logo across its border) pulls the pose (seed 19: one at 2.4 px,
+        # the others then 1.0): look for the missing ones where this pose puts them,
+        # align the suspect ones by their whole pattern, and register again with those found
+        misfit = {i: float(np.sqrt(np.mean(np.sum((cam.project(_bled(b, np.repeat(b.mean(axis=0)[None], 4, axis=0),
+                                                                      bleed)) - c) ** 2, axis=1))))
+                  for i, b, c in zip(used, bed_c, img_c)}
+        todo = sorted(set(fid_mm) - set(used)) + [i for i in used if misfit[i] > SUSPECT_PX]
+        if todo:
+            from measure.fiducial_search import find_markers
+            more = find_markers(gray, manifest, cam, todo, polarity)
+            if more:
+                return register(image, manifest, points, refine=refine, distortion=distortion, start_H=start_H,
+                                recovered={m.id: m.corners_px for m in more})
     return reg
 
 
