@@ -229,3 +229,25 @@ def test_kisslicer_export_uses_kisslicer2_key_and_states_the_geometry(tmp_path, 
     cap = capsys.readouterr()
     assert cap.out == "M900 K0.6000\n" and "ignores the pressure-advance command" in cap.err
     assert "--to kisslicer" in cap.err
+
+
+def test_fit_says_when_the_printer_ignores_the_firmware_line(scan, capsys):
+    """The Adventurer 3's firmware ignores M900 (its owner found no effect even at K=200):
+    `calib fit` still prints the line, and says on the next that it changes nothing there
+    and which route does."""
+    d, w, mp, _ = scan
+    doc = json.loads(mp.read_text())
+    doc["printer"]["firmware_pressure_advance"] = False
+    doc["printer"]["name"] = "adventurer3"
+    mp2 = d / "ignored.manifest.json"
+    mp2.write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert main(["fit", str(w), "--manifest", str(mp2), "--model", "pa", "--quiet",
+                 "-o", str(d / "ignored.json")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    i = next(k for k, line in enumerate(out) if line.startswith("pressure advance"))
+    assert "M900 K" in out[i]
+    assert "'adventurer3' says its firmware ignores these commands" in out[i + 1] and "kisslicer" in out[i + 1]
+    assert main(["fit", str(w), "--manifest", str(mp), "--model", "pa", "--quiet",
+                 "-o", str(d / "honoured.json")]) == 0
+    assert "ignores" not in capsys.readouterr().out

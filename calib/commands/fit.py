@@ -290,6 +290,11 @@ def summary_text(res) -> str:
         pa = res.derived["pressure_advance_s"]
         lines.append(f"pressure advance {pa['median']:.4f} s (95 % {pa['ci95'][0]:.4f}-{pa['ci95'][1]:.4f}):"
                      f"  {fw['klipper']}  |  {fw['marlin']}  |  {fw['rrf']}")
+        prof = res.profile or {}
+        if prof.get("firmware_pressure_advance", True) is False:
+            # the Adventurer 3: its owner's tests found no effect of M900 even at K=200
+            lines.append(f"  but the printer profile '{prof.get('name', '?')}' says its firmware ignores these "
+                         "commands: use KISSlicer VE below (`calib export FIT --to kisslicer`)")
     ve = res.derived.get("kisslicer_ve_us")
     if ve:
         lines.append(f"KISSlicer VE {ve['median']:.3f} us (95 % {ve['ci95'][0]:.3f}-{ve['ci95'][1]:.3f})")
