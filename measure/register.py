@@ -82,6 +82,7 @@ class Registration:
     warnings: list = field(default_factory=list)
     track_score: float = float("nan")      # mean saturated track-likeness after refinement (0..1)
     info: dict = field(default_factory=dict)   # how an automatic pose was found (measure.autoreg)
+    recovered_markers: list = field(default_factory=list)   # ids found by measure.fiducial_search
 
     @property
     def camera(self) -> Camera:
@@ -109,7 +110,8 @@ class Registration:
                 "polarity": "light-on-dark" if self.polarity > 0 else "dark-on-light",
                 "marker_ids": [int(i) for i in self.marker_ids],
                 "track_offset_rms_mm": float(self.track_offset_rms_mm),
-                "corner_rms_px": float(self.corner_rms_px)}
+                "corner_rms_px": float(self.corner_rms_px),
+                "recovered_markers": [int(i) for i in self.recovered_markers]}
 
 
 # -- point hints --------------------------------------------------------------------------
@@ -405,8 +407,9 @@ def register(image, manifest, points=None, *, refine: bool = True,
 
     points      optional point hints: text ``"x,y=u,v;..."`` or (bed (N, 2), img (N, 2)).
     refine      run the track-layout refinement (step 2 of the module docstring).
-    distortion  estimate k1, k2: None = only when the image looks like a photo (marker
-                corners misfit a pure homography by > 0.5 px, or point hints are used).
+    distortion  estimate k1, k2: None = only when the image looks like a photo (the image
+                scale varies over the print by > PERSPECTIVE, marker corners misfit a pure
+                homography by > 0.5 px, or point hints or the automatic pose are used).
     start_H     a bed mm -> px homography to start from when there are neither fiducials
                 nor points (measure.autoreg; good to ~1 mm): method "auto".
     recovered   {marker id: (4, 2) corners px} found by the guided search
@@ -559,7 +562,7 @@ def register(image, manifest, points=None, *, refine: bool = True,
         reg.corner_rms_px = float(np.sqrt(np.mean(err_px ** 2)))
         reg.residual_mm = float(np.sqrt(np.mean((err_px / cam.px_per_mm(bed_pts)) ** 2)))
         if recovered:
-            reg.info["recovered_markers"] = sorted(int(i) for i in recovered if i in used)
+            reg.recovered_markers = sorted(int(i) for i in recovered if i in used)
             return reg
         # Two markers on one side leave the far side to the tracks (phone seed 9: 0.1 mm
         # off, tau 6 % low; seed 3: 2 mm, every width wrong), and a marker detected with

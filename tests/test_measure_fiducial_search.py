@@ -35,7 +35,7 @@ def test_markers_crossed_by_a_logo_are_found_where_the_pose_puts_them():
     img = _ring_over(gray_of(r), r.camera, man, (2, 3))
     assert R.detect_markers(img)[0] == [0, 1]          # the detector alone misses both
     reg = R.register(img, man)
-    assert reg.n_markers == 4 and reg.info["recovered_markers"] == [2, 3]
+    assert reg.n_markers == 4 and reg.recovered_markers == [2, 3]
     err = true_registration_error_mm(reg, r)
     assert err < 0.008                                  # mm (0.0045 measured)
     # and that is better than the two markers it started from (0.013 mm)
@@ -102,6 +102,6 @@ def test_a_marker_detected_with_corners_off_is_aligned_again(monkeypatch):
         m.setattr(FS, "find_markers", lambda *a, **k: [])
         pulled = R.register(g, man)
     reg = R.register(g, man)
-    assert reg.info.get("recovered_markers") == [1]
+    assert reg.recovered_markers == [1]
     assert true_registration_error_mm(reg, r) < 0.5 * true_registration_error_mm(pulled, r)
     assert true_registration_error_mm(reg, r) < 1.5 * true_registration_error_mm(good, r) + 0.002
