@@ -105,3 +105,19 @@ def test_a_marker_detected_with_corners_off_is_aligned_again(monkeypatch):
     assert reg.recovered_markers == [1]
     assert true_registration_error_mm(reg, r) < 0.5 * true_registration_error_mm(pulled, r)
     assert true_registration_error_mm(reg, r) < 1.5 * true_registration_error_mm(good, r) + 0.002
+
+
+def test_calib_measure_says_which_markers_it_read_by_their_pattern(tmp_path, capsys):
+    from calib.cli import main
+
+    man, r = rendered("phone")
+    img = _ring_over(gray_of(r), r.camera, man, (2, 3))
+    scan = tmp_path / "scan.png"
+    cv2.imwrite(str(scan), np.clip(img * 255 + 0.5, 0, 255).astype(np.uint8))
+    mp = man.save(tmp_path / "scene.manifest.json")
+    assert main(["measure", str(scan), "--manifest", str(mp), "-o", str(tmp_path / "w.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "marker(s) 2, 3 read by their whole printed pattern" in err
+    import json
+    summary = json.loads((tmp_path / "w.summary.json").read_text())
+    assert summary["registration"]["recovered_markers"] == [2, 3]

@@ -50,6 +50,11 @@ def run(args) -> int:
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "
           f"registration residual {res.registration.residual_mm:.3f} mm ({res.registration.method})",
           file=sys.stderr)
+    rec = res.registration.recovered_markers
+    if rec:
+        print(f"calib measure: marker(s) {', '.join(map(str, rec))} read by their whole printed pattern where the "
+              "others put them (the detector missed them or misread their corners: a logo, a string or glare "
+              "across the border?)", file=sys.stderr)
     if res.placement is not None and res.placement.sentence():
         # the residual above then counts where the printer put its tracks, not only the pose
         print(f"calib measure: {res.placement.sentence()}", file=sys.stderr)
