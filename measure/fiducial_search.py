@@ -13,11 +13,14 @@ whole picture but where they must be, and by their whole printed pattern rather 
 a contour: the picture is resampled into the marker's own frame (cells, bed-parallel, so
 the perspective is gone), the known pattern (data bits, black border, plastic quiet frame
 and one cell of plate around it) is located by normalised cross-correlation over +-4
-cells, and aligned by ECC with a full homography (Evangelidis & Psarakis 2008, OpenCV
+cells, and aligned by ECC with an affine map (Evangelidis & Psarakis 2008, OpenCV
 ``findTransformECC``: zero-mean normalised, so indifferent to the plastic's brightness
-and the light's gradient). A marker is accepted only when its 16 data bits read back as
-its own id (at most one bit wrong) and the quiet frame is brighter than the black border
-in the plastic's polarity, so a pose that is wrong cannot invent a marker.
+and the light's gradient; the perspective left over a 16 mm marker is negligible), twice
+more without the pixels the pattern does not explain (a logo's ring or letters). A marker
+is accepted only when its data bits read back as its own id (at most one of 16 wrong, at
+least 12 readable beside a logo) and the quiet frame is brighter than the black border in
+the plastic's polarity, so a pose that is wrong cannot invent a marker. The same search
+re-reads a detected marker whose corners misfit the pose of the others (measure/register.py).
 
 The corners come from aligning the whole printed pattern, whose edges move in opposite
 directions when the plastic bleeds (the quiet frame's outer edge out, the border's edge
@@ -95,9 +98,10 @@ def _resample(gray, camera, frame, lo: float, n: int, q: int) -> np.ndarray:
 
 def _outliers(aligned, templ, warp, n_s: int, q: int) -> tuple[np.ndarray, np.ndarray]:
     """(outliers in the template's px (bool), uint8 mask of the pixels to use (255) in the
-    search image's px): the pixels the aligned pattern does not explain, those whose residual from gain * template + offset is under half the
-    plastic's contrast, the rest widened by a quarter cell (a plate logo or a string across
-    the marker: a ring over two markers pulled their corners 1-2 px without this). Half
+    search image's px): the pixels the aligned pattern does not explain, those whose
+    residual from gain * template + offset exceeds half the plastic's contrast, widened by a
+    quarter cell (a plate logo or a string across the marker: a ring over two markers
+    pulled their corners 1-2 px without this). Half
     the contrast, not a few noise sd: an edge blurred a little more than the template's
     leaves residuals of a few sd all along the pattern, and masking those leaves ECC
     nothing to align."""
