@@ -61,10 +61,10 @@ class Influence:
 
 
 def whitening_matrix(sc, sigma_extra_mm: float, corr_len_mm: float | None, sigma_short_mm: float = 0.0,
-                     short_corr_mm: float = 0.4) -> np.ndarray:
+                     short_corr_mm: float = 0.4, rel_mm=None) -> np.ndarray:
     """M (n, n) with M @ x = fit.likelihood.whiten(x, ...) for the scan's valid stations
-    (its sd_mm and gap_mm): the whitening is linear in x, so M is it applied to the unit
-    vectors."""
+    (its sd_mm and gap_mm; ``rel_mm`` (n,) the relative wobble's sd at each, mm, or None):
+    the whitening is linear in x, so M is it applied to the unit vectors."""
     n = len(sc.y_mm)
     sd2 = np.asarray(sc.sd_mm, dtype=float) ** 2
     g = np.asarray(sc.gap_mm, dtype=float)
@@ -76,7 +76,8 @@ def whitening_matrix(sc, sigma_extra_mm: float, corr_len_mm: float | None, sigma
         eye[np.arange(len(eye)), k0 + np.arange(len(eye))] = 1.0
         v, F = _kalman(eye, sd2, np.array([sigma_extra_mm ** 2]), phi,
                        np.array([sigma_short_mm ** 2]) if short else None,
-                       ar1_phi(g, [[short_corr_mm]]) if short else None)
+                       ar1_phi(g, [[short_corr_mm]]) if short else None,
+                       None if rel_mm is None else np.broadcast_to(np.asarray(rel_mm, dtype=float), eye.shape))
         cols.append(v / np.sqrt(F))
     return np.vstack(cols).T
 
@@ -87,7 +88,8 @@ def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
     theta = np.asarray(theta, dtype=float)
     sc = problem.scans[k]
     i_sig, i_cor, i_short = problem.noise_index[k]
-    noise = {i for trip in problem.noise_index for i in trip if i is not None}
+    noise = {i for trip in problem.noise_index for i in trip if i is not None} | {
+        i for i in problem.rel_index if i is not None}
     free = [i for i in range(problem.ndim) if i not in noise]
     lo, hi = problem.bounds.T
 
@@ -106,8 +108,9 @@ def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
         lp = [float(problem.priors[i].log_prob(np.array([x]))[0]) for x in (dn, theta[i], up)]
         if all(np.isfinite(lp)) and up - theta[i] > 0 and theta[i] - dn > 0:
             P[j, j] = max(0.0, -(lp[2] - 2 * lp[1] + lp[0]) / ((up - dn) / 2) ** 2)
-    M = whitening_matrix(sc, float(theta[i_sig]), None if i_cor is None else float(theta[i_cor]),
-                         0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm)
+    fixed, rel = problem.wobble_parts(theta, k)
+    M = whitening_matrix(sc, fixed, None if i_cor is None else float(theta[i_cor]),
+                         0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm, rel)
     Jw = M @ J
     A = np.linalg.solve(Jw.T @ Jw + P, Jw.T @ M)
     return Influence(names=[problem.param_names[i] for i in free], A=A, rows=np.asarray(sc.order), theta=theta)

@@ -15,10 +15,37 @@ Noise model (per valid sample i, along one track, stations ordered by arc length
            sigma_short and the fixed length SHORT_CORR_MM (0.4 mm), the bead's short
            wobble over about its own width
 
-i.e. an Ornstein-Uhlenbeck process of sd sigma_extra and correlation length ell (and with
-``short``, a second one of sd sigma_short and length 0.4 mm, ell then >= LONG_MIN_FACTOR
-x 0.4 mm) seen through white measurement noise, covariance diag(width_sd^2) +
-sigma_extra^2 exp(-|s_i - s_j| / ell) [+ sigma_short^2 exp(-|s_i - s_j| / 0.4)]. The
+and with ``relative`` (the default) the long wobble's sd at station i is
+
+    h_i = sigma_extra sqrt(1 - f + f (c_i / c_med)^2)    (mm; c_i the commanded width there)
+
+i.e. x_i = h_i u_i with u a unit OU process: a bead wanders in proportion to its width
+(filament diameter, the flow itself) as well as by a fixed amount (plate, picture).
+f = ``noise.rel_share`` in [0, 1] (uniform prior), c_med the scan's median commanded width,
+so sigma_extra is the wobble's sd at the typical width whatever f: a print of one width
+cannot tell f, and then only f wanders (h_i^2 = sigma_extra^2 + (sigma_rel m_i)^2 made the
+two sds one ridge, and a joint fit lost its way on it). The commanded width scales it, a
+fixed design column, so the filter stays linear-Gaussian in the residual with gains that
+do not depend on theta: with the model's width m_i a fit could "explain" beads by
+predicting them narrow where their wobble vanishes (a line fit fell into a = 0.03 mm, b =
+-0.12 for 0.3 / 0.6), and with the measured width y_i the covariance depends on the data
+and the "likelihood" is no density (the same fit preferred a = 0.22, b = 0.44 by 211 in
+ln L: a gain error r = 0.26 y is a constant state of a wobble that grows with y). Where
+the bead lags its command (a Bowden step) the commanded width is the approximation.
+
+Why: on a Bowden scene whose beads run 0.3-0.8 mm wide, a 1.2 % wobble over 20 mm fitted
+with a constant-sd one read thermal.tau_s with a scatter of 11 s over 10 noise draws
+against a Laplace sd of 3.3 s (tau 0.015 s against 0.009, scan_bias.b1 0.017 against
+0.005): the wide beads' larger wobble is slow structure tied to the width, and thermal
+ooze with a long time constant and a width scale fit it. With h_i: 2.9 s against 3.5, tau
+0.008 against 0.008, b1 0.003 against 0.005; an additive wobble fitted with it reads as
+before (tau_s scatter 3.3 s).
+
+So the wobble is an Ornstein-Uhlenbeck process of sd h_i (sigma_extra without
+``relative``) and correlation length ell (and with ``short``, a second one of sd
+sigma_short and length 0.4 mm, ell then >= LONG_MIN_FACTOR x 0.4 mm) seen through white
+measurement noise, covariance diag(width_sd^2) + h_i h_j exp(-|s_i - s_j| / ell)
+[+ sigma_short^2 exp(-|s_i - s_j| / 0.4)]. The
 exact log-likelihood is the sum of the Kalman filter's one-step prediction terms (Durbin
 & Koopman 2012, "Time Series Analysis by State Space Methods", ch. 4); for one wobble,
 with the filtered state (a, P),
@@ -28,7 +55,9 @@ with the filtered state (a, P),
     update    K = P' / F,  a = a' + K v,  P = P' (1 - K)
 
 and with both the state is (x, z), the transition diag(phi, phi_s), the observation
-x + z (:func:`_kalman`).
+x + z (:func:`_kalman`). With ``relative`` the long state is the unit process u (P' =
+phi^2 P + 1 - phi^2) seen through h_i: v = r - h_i a' - z', F = h_i^2 P' + ... (the same
+filter with a time-varying observation coefficient, Durbin & Koopman ch. 4.3).
 
 Why the short wobble exists, and why it is not the default (issue #11 item 5, the
 back-pressure fits reading tau low and Kb high together): a real bead wanders over tens
@@ -124,6 +153,7 @@ NUISANCE_EFFECTS = ("flow_gain", "bed_tilt", "scan_bias", "flow", "tilt", "layer
 SIGMA_NAME = "noise.sigma_extra_mm"
 CORR_NAME = "noise.corr_len_mm"
 SHORT_NAME = "noise.sigma_short_mm"
+REL_NAME = "noise.rel_share"
 #: Correlation length (mm) of the short wobble: about a nozzle width, the scale over
 #: which the bead's own surface tension and the nozzle's land correlate its width; at
 #: the measurement's 0.25 mm station spacing neighbours correlate exp(-0.25/0.4) = 0.54.
@@ -139,13 +169,15 @@ MISSING_FALSE_RATE = 0.02
 
 @dataclass(frozen=True)
 class NoiseOptions:
-    """Noise model switches: AR(1) along tracks (``short``: with the second, short
+    """Noise model switches: AR(1) along tracks (``relative``: part of the wobble's sd grows
+    with the bead's width, ``noise.rel_share``, module docstring; ``short``: with the second, short
     wobble of correlation length ``short_corr_mm``), Student-t innovations with ``student_nu``
     degrees of freedom (None: Gaussian); ``missing``: fit the stations flagged missing as
     censored data (module docstring; on by default, a no-op when a table has none) with
     detection limit w_min = max(width_sd, ``missing_w_min_floor_mm``) (mm)."""
 
     ar1: bool = True
+    relative: bool = True
     short: bool = False
     student_nu: float | None = None
     missing: bool = True
@@ -158,10 +190,13 @@ class NoiseOptions:
     # the measurement's own sd to wander in
     short_prior: Prior = field(default_factory=lambda: Prior("uniform", 0.0, 0.1))
     short_corr_mm: float = SHORT_CORR_MM
+    # the share of the wobble's variance that grows with the width: uniform, 0 (all of it
+    # the same at every width) to 1 (all of it in proportion to the width)
+    rel_prior: Prior = field(default_factory=lambda: Prior("uniform", 0.0, 1.0))
 
 
 def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None, sigma_short_mm=None,
-                     phi_short=None) -> np.ndarray:
+                     phi_short=None, rel_mm=None) -> np.ndarray:
     """Pointwise log-likelihood (n_sets, n) of residuals under the noise model above
     (the Kalman filter in numpy; the reference for the compiled kernel).
 
@@ -173,6 +208,7 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None,
     student_nu      None (Gaussian innovations) or degrees of freedom of Student-t innovations
     sigma_short_mm  (n_sets, 1) or scalar sd of the short wobble (mm), or None (absent)
     phi_short       (n_sets, n) its correlation to the previous sample (needs ``phi``)
+    rel_mm          (n_sets, n) the relative wobble's sd at each sample (mm; h^2 = sigma_extra^2 + rel^2), or None
     """
     r = np.atleast_2d(np.asarray(resid_mm, dtype=float))
     short = sigma_short_mm is not None and phi_short is not None
@@ -181,7 +217,8 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None,
                    None if phi is None else np.broadcast_to(phi, r.shape),
                    np.broadcast_to(np.asarray(sigma_short_mm, dtype=float) ** 2, (r.shape[0], 1))[:, 0]
                    if short else None,
-                   np.broadcast_to(phi_short, r.shape) if short else None)
+                   np.broadcast_to(phi_short, r.shape) if short else None,
+                   None if rel_mm is None else np.broadcast_to(rel_mm, r.shape))
     if student_nu is None:
         return -0.5 * (v * v / F + np.log(F) + LOG2PI)
     nu = float(student_nu)
@@ -189,46 +226,52 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None,
     return c - 0.5 * np.log(F) - 0.5 * (nu + 1) * np.log1p(v * v / (F * nu))
 
 
-def _kalman(r, sd2, s2x, phi, s2y=None, phi2=None):
+def _kalman(r, sd2, s2x, phi, s2y=None, phi2=None, rel_mm=None):
     """Innovations v and their variances F (n_sets, n) of ``r`` (n_sets, n) under the
     noise model: sd2 (n,) measurement variances, s2x (n_sets,) sigma_extra^2, phi
     (n_sets, n) or None (independent x); s2y (n_sets,) sigma_short^2 and phi2 (n_sets, n)
-    of the short wobble, or None (absent). Linear in r: whitening any vector (a Jacobian
-    for a Cramer-Rao bound) is v / sqrt(F) with the same gains."""
+    of the short wobble, or None (absent); rel_mm (n_sets, n) the relative wobble's sd at
+    each station (mm; :meth:`JointProblem.wobble_parts`), or None. The long wobble is a unit AR(1) state seen
+    through h_j = sqrt(sigma_extra^2 + rel_j^2) (without rel, h is constant and this is
+    the plain filter of the module docstring with its state scaled by sigma_extra). Linear
+    in r: whitening any vector (a Jacobian for a Cramer-Rao bound) is v / sqrt(F) with the
+    same gains."""
     n_sets, n = r.shape
     v = np.empty_like(r)
     F = np.empty_like(r)
     short = s2y is not None and phi2 is not None and phi is not None
     s2y = np.zeros(n_sets) if not short else np.asarray(s2y, dtype=float)
     a, b = np.zeros(n_sets), np.zeros(n_sets)
-    P, P12, P22 = s2x.copy(), np.zeros(n_sets), s2y.copy()
+    P, P12, P22 = np.ones(n_sets), np.zeros(n_sets), s2y.copy()
     for j in range(n):
         ph = np.zeros(n_sets) if phi is None else phi[:, j]
         ph2 = phi2[:, j] if short else np.zeros(n_sets)
+        h = np.sqrt(s2x + (0.0 if rel_mm is None else rel_mm[:, j] ** 2))
         ap, bp = ph * a, ph2 * b
-        Pp = ph * ph * P + (1.0 - ph * ph) * s2x
+        Pp = ph * ph * P + (1.0 - ph * ph)
         P12p = ph * ph2 * P12
         P22p = ph2 * ph2 * P22 + (1.0 - ph2 * ph2) * s2y
-        F[:, j] = Pp + 2.0 * P12p + P22p + sd2[j]
-        v[:, j] = r[:, j] - ap - bp
-        K, K2 = (Pp + P12p) / F[:, j], (P12p + P22p) / F[:, j]
+        F[:, j] = h * h * Pp + 2.0 * h * P12p + P22p + sd2[j]
+        v[:, j] = r[:, j] - h * ap - bp
+        K, K2 = (h * Pp + P12p) / F[:, j], (h * P12p + P22p) / F[:, j]
         a, b = ap + K * v[:, j], bp + K2 * v[:, j]
         P, P12, P22 = Pp - K * K * F[:, j], P12p - K * K2 * F[:, j], P22p - K2 * K2 * F[:, j]
     return v, F
 
 
 def whiten(x_mm, sd_mm, sigma_extra_mm: float, gap_mm, corr_len_mm: float | None,
-           sigma_short_mm: float = 0.0, short_corr_mm: float = SHORT_CORR_MM) -> np.ndarray:
+           sigma_short_mm: float = 0.0, short_corr_mm: float = SHORT_CORR_MM, rel_mm=None) -> np.ndarray:
     """x (n,) whitened by the noise model: v / sqrt(F), ~N(0, 1) per sample if x is
     residual noise of that model. ``corr_len_mm`` None: independent samples (and no
-    short wobble)."""
+    short wobble); ``rel_mm`` (n,): the relative wobble's sd at each sample (mm) or None."""
     x = np.atleast_2d(np.asarray(x_mm, dtype=float))
     g = np.asarray(gap_mm, dtype=float)
     phi = None if corr_len_mm is None else ar1_phi(g, [[corr_len_mm]])
     short = phi is not None and sigma_short_mm > 0
     v, F = _kalman(x, np.asarray(sd_mm, dtype=float) ** 2, np.array([float(sigma_extra_mm) ** 2]), phi,
                    np.array([float(sigma_short_mm) ** 2]) if short else None,
-                   ar1_phi(g, [[short_corr_mm]]) if short else None)
+                   ar1_phi(g, [[short_corr_mm]]) if short else None,
+                   None if rel_mm is None else np.atleast_2d(np.asarray(rel_mm, dtype=float)))
     return (v / np.sqrt(F))[0]
 
 
@@ -260,23 +303,27 @@ def missing_loglik(pred_mm, w_min_mm, sigma_extra_mm, student_nu=None,
     return np.where(np.isfinite(ll), ll, -np.inf)
 
 
-def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, ell, sig_s, ell_s, nu, c_t, out):
+def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, wr, ell, sig_s, ell_s, nu, c_t, out):
     """Compiled :func:`pointwise_loglik` fused with the residuals: for every set i and
     valid sample j, r = y_j - pred[i, order_j], through the two-component Kalman filter
     of the module docstring (long wobble sig[i], ell[i]; short wobble sig_s[i] with the
     fixed correlation length ell_s); ell[i] <= 0 means independent x (and no short
-    component); nu <= 0 Gaussian, else Student-t with log normaliser c_t. Writes out
-    (n_sets, n). With sig_s = 0 the short state stays 0 and the arithmetic is the
-    one-component filter's, term for term."""
+    component); nu <= 0 Gaussian, else Student-t with log normaliser c_t; share[i] the
+    relative wobble's share f and wr[j] the j-th sample's commanded width over the scan's
+    median one: the long wobble's sd there is sig sqrt(1 - f + f wr^2) (module docstring;
+    :func:`_kalman`).
+    Writes out (n_sets, n). With sig_s = 0 the short state stays 0 and the arithmetic is
+    the one-component filter's, term for term."""
     n_sets = pred.shape[0]
     n = order.shape[0]
     for i in prange(n_sets):
         s2x = sig[i] * sig[i]
+        f = share[i]
         s2y = sig_s[i] * sig_s[i] if ell[i] > 0.0 else 0.0
         el = ell[i]
         a = 0.0
         b = 0.0
-        P = s2x
+        P = 1.0
         P12 = 0.0
         P22 = s2y
         g_prev = -1.0
@@ -289,19 +336,20 @@ def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, ell, sig_s, ell_s, nu, c_t, 
                     phi = math.exp(-g / el)
                     phi2 = math.exp(-g / ell_s) if s2y > 0.0 else 0.0
                     g_prev = g
+            h = sig[i] * math.sqrt(1.0 - f + f * wr[j] * wr[j]) if f > 0.0 else sig[i]
             ap = phi * a
             bp = phi2 * b
-            Pp = phi * phi * P + (1.0 - phi * phi) * s2x
+            Pp = phi * phi * P + (1.0 - phi * phi)
             P12p = phi * phi2 * P12
             P22p = phi2 * phi2 * P22 + (1.0 - phi2 * phi2) * s2y
-            F = Pp + 2.0 * P12p + P22p + sd2[j]
-            v = y[j] - pred[i, order[j]] - ap - bp
+            F = h * h * Pp + 2.0 * h * P12p + P22p + sd2[j]
+            v = y[j] - pred[i, order[j]] - h * ap - bp
             if nu <= 0.0:
                 ll = -0.5 * (v * v / F + math.log(F) + LOG2PI)
             else:
                 ll = c_t - 0.5 * math.log(F) - 0.5 * (nu + 1.0) * math.log1p(v * v / (F * nu))
-            K = (Pp + P12p) / F
-            K2 = (P12p + P22p) / F
+            K = (h * Pp + P12p) / F
+            K2 = (h * P12p + P22p) / F
             a = ap + K * v
             b = bp + K2 * v
             P = Pp - K * K * F
@@ -316,6 +364,21 @@ _AR1_SERIAL, _AR1_PARALLEL = serial_and_parallel(_ar1_loglik_rows)
 def ar1_phi(gap_mm: np.ndarray, corr_len_mm) -> np.ndarray:
     """phi_i = exp(-gap_i / ell); gap = inf at a track start gives 0. Shapes (n,), (n_sets, 1)."""
     return np.exp(-gap_mm[None, :] / np.asarray(corr_len_mm))
+
+
+def _relative_widths(scan) -> np.ndarray:
+    """(n_valid,) the commanded width of each valid sample of ``scan`` (its manifest's, at
+    ``scan.order``) over their median; 1 where it is unknown or not positive."""
+    n = len(scan.y_mm)
+    smp = getattr(scan, "samples", None)
+    w = getattr(smp, "width_nominal_mm", None)
+    if w is None or n == 0:
+        return np.ones(n)
+    w = np.asarray(w, dtype=float)[np.asarray(scan.order)]
+    ok = np.isfinite(w) & (w > 0)
+    if not ok.any():
+        return np.ones(n)
+    return np.ascontiguousarray(np.where(ok, w / float(np.median(w[ok])), 1.0))
 
 
 def censored_rows(scan) -> np.ndarray:
@@ -366,6 +429,10 @@ class JointProblem:
         priors: dict[str, Prior] = {}
         self.index: list[np.ndarray] = []        # per scan: global index of each model param
         self.noise_index: list[tuple[int, int | None, int | None]] = []
+        self.rel_index: list[int | None] = []       # per scan: noise.rel_share (relative wobble)
+        # per scan: each valid sample's commanded width over the scan's median one, what
+        # the relative wobble grows with (module docstring; 1 where the manifest has none)
+        self.w_rel = [_relative_widths(sc) for sc in scans]
         shared_pos = {}
         for n in names0:
             if not (joint and is_nuisance(n)):
@@ -388,6 +455,12 @@ class JointProblem:
             i_sig = len(names)
             names.append(SIGMA_NAME + suffix)
             priors[SIGMA_NAME + suffix] = noise.sigma_prior
+            i_rel = None
+            if noise.relative:
+                i_rel = len(names)
+                names.append(REL_NAME + suffix)
+                priors[REL_NAME + suffix] = noise.rel_prior
+            self.rel_index.append(i_rel)
             i_cor = i_short = None
             if noise.ar1:
                 i_cor = len(names)
@@ -439,6 +512,9 @@ class JointProblem:
                 th[i_cor] = 0.5
             if i_short is not None:
                 th[i_short] = 0.001
+        for i_rel in self.rel_index:
+            if i_rel is not None:
+                th[i_rel] = 0.5
         lo, hi = self.bounds.T
         return np.clip(th, lo, hi)
 
@@ -503,9 +579,12 @@ class JointProblem:
             sig = np.ascontiguousarray(th[:, i_sig])
             ell = np.ascontiguousarray(th[:, i_cor]) if i_cor is not None else np.zeros(n_sets)
             sig_s = np.ascontiguousarray(th[:, i_short]) if i_short is not None else np.zeros(n_sets)
+            i_rel = self.rel_index[k]
+            share = np.ascontiguousarray(th[:, i_rel]) if i_rel is not None else np.zeros(n_sets)
             n = len(sc.order)
             buf = out if direct else np.empty((n_sets, n))
-            kern(pred, *self._kernel_arrays(k), sig, ell, sig_s, float(self.noise.short_corr_mm), nu_f, c_t, buf)
+            kern(pred, *self._kernel_arrays(k), sig, share, self.w_rel[k], ell, sig_s,
+                 float(self.noise.short_corr_mm), nu_f, c_t, buf)
             if buf is not out:
                 out[:, col:col + n] = buf
             col += n
@@ -530,6 +609,18 @@ class JointProblem:
                               np.ascontiguousarray(sc.gap_mm, dtype=float)))
         return cache[k][1]
 
+    def wobble_parts(self, theta, k: int) -> tuple[float, np.ndarray | None]:
+        """The long wobble of scan ``k`` as (fixed sd, relative sd per valid sample or None)
+        (mm), h^2 = fixed^2 + rel^2 (module docstring): sigma_extra sqrt(1 - f) and
+        sigma_extra sqrt(f) w_nom / w_ref, for one theta."""
+        th = np.asarray(theta, dtype=float)
+        sig = float(th[self.noise_index[k][0]])
+        i_rel = self.rel_index[k]
+        if i_rel is None:
+            return sig, None
+        f = float(th[i_rel])
+        return sig * math.sqrt(1.0 - f), sig * math.sqrt(f) * self.w_rel[k]
+
     def residuals(self, theta) -> list[np.ndarray]:
         """Residuals y - m (mm) at the valid samples of each scan, for one theta."""
         th = np.atleast_2d(theta)[:1]
@@ -541,8 +632,9 @@ class JointProblem:
         th = np.atleast_2d(theta)[:1]
         out = []
         for k, sc in enumerate(self.scans):
-            r = sc.y_mm - self.predict(th, k)[0, sc.order]
+            m = self.predict(th, k)[0, sc.order]
             i_sig, i_cor, i_short = self.noise_index[k]
-            out.append(whiten(r, sc.sd_mm, th[0, i_sig], sc.gap_mm, None if i_cor is None else th[0, i_cor],
-                              0.0 if i_short is None else float(th[0, i_short]), self.noise.short_corr_mm))
+            fixed, rel = self.wobble_parts(th[0], k)
+            out.append(whiten(sc.y_mm - m, sc.sd_mm, fixed, sc.gap_mm, None if i_cor is None else th[0, i_cor],
+                              0.0 if i_short is None else float(th[0, i_short]), self.noise.short_corr_mm, rel))
         return np.concatenate(out)

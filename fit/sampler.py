@@ -116,16 +116,18 @@ def _logpost_z(problem, tr, z):
     return lp + (np.atleast_2d(z) * tr.log).sum(axis=1)
 
 
-def _hessian_z(problem, tr, z0, h=1e-3):
-    """Central-difference Hessian of -log posterior in z, all points in one call."""
-    d = len(z0)
+def _hessian_z(problem, tr, z0, h=1e-3, free=None):
+    """Central-difference Hessian of -log posterior in z, all points in one call; over the
+    parameters where ``free`` (bool mask) is True only, the others held at z0."""
+    idx = np.arange(len(z0)) if free is None else np.flatnonzero(free)
+    d = len(idx)
     pts, keys = [z0], []
     for i in range(d):
         for j in range(i, d):
             for si, sj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
                 p = z0.copy()
-                p[i] += si * h
-                p[j] += sj * h
+                p[idx[i]] += si * h
+                p[idx[j]] += sj * h
                 pts.append(p)
                 keys.append((i, j, si * sj))
     f = -_logpost_z(problem, tr, np.array(pts))
@@ -137,6 +139,28 @@ def _hessian_z(problem, tr, z0, h=1e-3):
         H[i, j] += sgn * fv / (4 * h * h)
     H = H + np.triu(H, 1).T
     return H
+
+
+def _laplace_cov_z(problem, tr, z, h: float = 1e-3) -> np.ndarray:
+    """Laplace covariance in z at the MAP z. Parameters within 2 h of a bound (a wobble's
+    sd at its floor, an effect at its "absent" 0) have no two-sided curvature: the
+    Hessian is taken over the others, and those get a small variance (1e-4 in z), the
+    same as every parameter gets when the Hessian fails altogether. Before, one such
+    parameter cost every other one its Laplace sd (and the sampler its start ball)."""
+    d = len(z)
+    free = (z - tr.zlo > 2 * h) & (tr.zhi - z > 2 * h)
+    cov_z = np.diag(np.full(d, 1e-4))
+    if not free.any():
+        return cov_z
+    try:
+        Hz = _hessian_z(problem, tr, z, h=h, free=free)
+        sub = np.linalg.inv(Hz)
+        if not np.all(np.isfinite(sub)) or np.any(np.linalg.eigvalsh(0.5 * (sub + sub.T)) <= 0):
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:
+        return cov_z
+    cov_z[np.ix_(free, free)] = sub
+    return cov_z
 
 
 def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
@@ -199,13 +223,7 @@ def fit_map(model, data=None, *, n_starts: int = 4, seed: int = 0, noise=None,
     best = optima[0][1]
     z = best.x
     theta = tr.to_theta(z)
-    try:
-        Hz = _hessian_z(problem, tr, z, h=1e-3)
-        cov_z = np.linalg.inv(Hz)
-        if not np.all(np.isfinite(cov_z)) or np.any(np.linalg.eigvalsh(0.5 * (cov_z + cov_z.T)) <= 0):
-            raise np.linalg.LinAlgError
-    except np.linalg.LinAlgError:
-        cov_z = np.diag(np.full(d, 1e-4))
+    cov_z = _laplace_cov_z(problem, tr, z)
     J = np.where(tr.log, theta, 1.0)
     cov = cov_z * np.outer(J, J)
     out = _map_result(problem, theta, cov, best, len(optima), model_label(problem, model))
@@ -233,6 +251,8 @@ def _map_result(problem, theta, cov, res, n_ok, label) -> MapResult:
     n_valid = len(resid)          # chi2_nu and RMS: valid samples (missing ones have no residual)
     # the bead's own wobble, allowed up to WOBBLE_REL_MAX of the width (fit/result.py)
     # (long and short wobble together)
+    # (long and short wobble together; the long one's sd is sigma_extra at the scan's
+    # median width whatever its relative share)
     allow = np.concatenate([np.full(len(sc.y_mm), min(
         math.hypot(float(theta[i_sig]), 0.0 if i_short is None else float(theta[i_short])),
         WOBBLE_REL_MAX * float(np.median(np.abs(sc.y_mm))) if len(sc.y_mm) else 0.0))

@@ -14,7 +14,7 @@ from fit.params import Param
 from measure.table import WidthTable
 from patterns.manifest import Samples
 
-GAUSS = NoiseOptions(ar1=False)
+GAUSS = NoiseOptions(ar1=False, relative=False)
 
 
 class LineModel:
@@ -119,9 +119,10 @@ def test_ar1_bic_matches_the_hand_computed_likelihood_of_correlated_residuals():
         w[i] = rho * w[i - 1] + math.sqrt(1 - rho ** 2) * rng.standard_normal()
     y = 0.45 + 0.004 * x + 0.02 * w + 0.005 * rng.standard_normal(n)
     sd = 0.005
-    # one wobble (the default); the optional second, short wobble is checked at the end
+    # one wobble of constant sd (the default adds a share that grows with the commanded
+    # width, a constant here); the optional second, short wobble is checked at the end
     comp = compare_models(_scan(x, y, sd), {"const": LineModel(const=True), "line": LineModel()},
-                          full=False)
+                          full=False, noise=NoiseOptions(relative=False))
     fits = {f.spec: f for f in comp.fits}
     f = fits["line"]
     a, b = f.map.theta[:2]
@@ -158,7 +159,7 @@ def test_ar1_bic_matches_the_hand_computed_likelihood_of_correlated_residuals():
     # two OU processes under the white noise
     from fit.likelihood import LONG_MIN_FACTOR, SHORT_CORR_MM
     f2 = {g.spec: g for g in compare_models(_scan(x, y, sd), {"line": LineModel()}, full=False,
-                                            noise=NoiseOptions(short=True)).fits}["line"]
+                                            noise=NoiseOptions(short=True, relative=False)).fits}["line"]
     v2 = f2.map.values
     ell2, sig_s = v2["noise.corr_len_mm"], v2["noise.sigma_short_mm"]
     assert f2.k == 5 and ell2 >= LONG_MIN_FACTOR * SHORT_CORR_MM

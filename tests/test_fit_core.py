@@ -110,8 +110,8 @@ def test_loglik_equals_exact_multivariate_normal():
     # the compiled kernel of the sampler gives the same terms
     from fit.likelihood import _AR1_SERIAL
     out = np.empty((1, n))
-    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.array([ell]),
-                np.zeros(1), 0.4, -1.0, 0.0, out)
+    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.zeros(1), np.ones(n),
+                np.array([ell]), np.zeros(1), 0.4, -1.0, 0.0, out)
     assert np.allclose(out, ll, rtol=1e-12, atol=1e-12)
     # with the short wobble (sd sig_s, correlation length ell_s): the sum of two OU
     # processes, covariance diag(sd^2) + sig^2 exp(-|d| / ell) + sig_s^2 exp(-|d| / ell_s)
@@ -122,9 +122,41 @@ def test_loglik_equals_exact_multivariate_normal():
                            phi_short=ar1_phi(gap, np.array([[ell_s]])))
     assert ll2.sum() == pytest.approx(exact2, rel=1e-10)
     assert abs(exact2 - exact) > 1.0            # the short wobble changes the density
-    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.array([ell]),
-                np.array([sig_s]), ell_s, -1.0, 0.0, out)
+    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.zeros(1), np.ones(n),
+                np.array([ell]), np.array([sig_s]), ell_s, -1.0, 0.0, out)
     assert np.allclose(out, ll2, rtol=1e-12, atol=1e-12)
+
+
+def test_relative_wobble_is_exact_gaussian_loglik():
+    """With the relative wobble the long wobble's sd at station i is h_i = sig sqrt(1 - f +
+    f (c_i / w_ref)^2), c_i the commanded width: covariance diag(sd^2) + h_i h_j exp(-|d| / ell)
+    within a track. The Kalman filter (reference and compiled) gives the dense Gaussian's
+    log-density, and f = 0 gives the plain filter's terms."""
+    from fit.likelihood import _AR1_SERIAL
+    rng = np.random.default_rng(4)
+    n, sig, f, w_ref, ell = 50, 0.008, 0.7, 0.6, 3.0
+    sd = rng.uniform(0.002, 0.006, n)
+    m = rng.uniform(0.3, 1.2, n)                     # model = commanded widths (mm)
+    s = np.cumsum(rng.uniform(0.1, 0.6, n))
+    track = (np.arange(n) >= 30).astype(int)
+    gap = np.r_[np.inf, np.diff(s)]
+    gap[30] = np.inf
+    h = sig * np.sqrt(1 - f + f * (m / w_ref) ** 2)
+    C = np.outer(h, h) * np.exp(-np.abs(np.subtract.outer(s, s)) / ell) * (track[:, None] == track[None, :])
+    C += np.diag(sd ** 2)
+    y = m + rng.multivariate_normal(np.zeros(n), C)
+    exact = multivariate_normal(m, C).logpdf(y)
+    # the reference: h^2 = fixed^2 + rel^2 (JointProblem.wobble_parts)
+    ll = pointwise_loglik((y - m)[None], sd, sig * math.sqrt(1 - f), ar1_phi(gap, [[ell]]),
+                          rel_mm=(sig * math.sqrt(f) * m / w_ref)[None])
+    assert ll.sum() == pytest.approx(exact, rel=1e-10)
+    out = np.empty((1, n))
+    _AR1_SERIAL(m[None], np.arange(n), y, sd ** 2, gap, np.array([sig]), np.array([f]), m / w_ref,
+                np.array([ell]), np.zeros(1), 0.4, -1.0, 0.0, out)
+    assert np.allclose(out, ll, rtol=1e-12, atol=1e-12)
+    _AR1_SERIAL(m[None], np.arange(n), y, sd ** 2, gap, np.array([sig]), np.zeros(1), m / w_ref,
+                np.array([ell]), np.zeros(1), 0.4, -1.0, 0.0, out)
+    assert np.allclose(out, pointwise_loglik((y - m)[None], sd, sig, ar1_phi(gap, [[ell]])), rtol=1e-12)
 
 
 def test_ar1_gap_uses_rho_to_the_power_of_the_gap():
@@ -183,7 +215,7 @@ def test_map_recovers_tau_and_gain_and_reports_information():
     assert m.pointwise.shape == (n,) and m.pointwise.sum() == pytest.approx(m.loglik)
     # widths scatter ~0.016 mm around the truth; the residual RMS must show it
     assert 0.010 < m.rms_mm < 0.025
-    assert m.k == 4 and m.k_model == 2        # noise: the wobble's sd and length
+    assert m.k == 5 and m.k_model == 2        # noise: the wobble's sd, its relative share, its length
 
 
 def test_mcmc_recovers_tau_with_honest_diagnostics():
@@ -343,3 +375,66 @@ def test_influence_predicts_how_far_a_width_error_moves_the_map():
     scaled = infl.shift(0.01 * w)
     assert scaled["flow_gain.gain"] == pytest.approx(0.01 * m0.values["flow_gain.gain"], rel=0.02)
     assert abs(scaled["pa.tau_s"]) < 0.02 * abs(pred["pa.tau_s"])
+
+
+def _two_width_track(rel, add, seed):
+    """400 mm of bead alternating 0.3 and 0.9 mm every 40 mm (model: a + b z, z the block
+    indicator), its width wandering along an OU process of 20 mm by ``rel`` x the width plus
+    ``add`` mm, measured with a 2 um sd."""
+    from test_discover_compare import LineModel, _scan
+
+    rng = np.random.default_rng(seed)
+    s = np.arange(0.0, 400.0, 0.25)
+    z = (s // 40.0) % 2
+    w = 0.3 + 0.6 * z
+    phi = math.exp(-0.25 / 20.0)
+    ou = np.zeros((2, len(s)))
+    ou[:, 0] = rng.standard_normal(2)
+    for i in range(1, len(s)):
+        ou[:, i] = phi * ou[:, i - 1] + math.sqrt(1 - phi * phi) * rng.standard_normal(2)
+    y = w + rel * w * ou[0] + add * ou[1] + 0.002 * rng.standard_normal(len(s))
+    sc = _scan(s, y, 0.002)
+    sc.ctx = z
+    sc.samples.width_nominal_mm = w          # the commanded width the relative wobble grows with
+    return sc, LineModel()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_relative_wobble_is_told_from_an_additive_one(seed):
+    """The wobble's form recovered from data made with a known one (beads of 0.3 and 0.9
+    mm): a 2 % wobble of the width reads a
+    relative share near 1 and the width-independent fit is worse by far in ln L (150-170);
+    a 9 um additive wobble reads a share near 0, sigma_extra ~9 um, and gains nothing."""
+    from fit.likelihood import JointProblem, NoiseOptions, REL_NAME
+
+    sc, model = _two_width_track(0.02, 0.0, seed)
+    pb = JointProblem([sc], [model], NoiseOptions())
+    m = fit_map(pb, seed=seed)
+    v = dict(zip(m.param_names, m.theta))
+    assert v[REL_NAME] > 0.9
+    # sigma_extra is the wobble's sd at the median commanded width: 2 % of it
+    assert v["noise.sigma_extra_mm"] == pytest.approx(0.02 * float(np.median(sc.samples.width_nominal_mm)), rel=0.3)
+    plain = fit_map(JointProblem([sc], [model], NoiseOptions(relative=False)), seed=seed)
+    assert m.loglik - plain.loglik > 20.0
+    sc, model = _two_width_track(0.0, 0.009, seed)
+    m = fit_map(JointProblem([sc], [model], NoiseOptions()), seed=seed)
+    v = dict(zip(m.param_names, m.theta))
+    assert v[REL_NAME] < 0.3
+    assert 0.006 < v["noise.sigma_extra_mm"] < 0.012
+    plain = fit_map(JointProblem([sc], [model], NoiseOptions(relative=False)), seed=seed)
+    assert m.loglik - plain.loglik < 5.0
+
+
+def test_laplace_sds_survive_a_parameter_at_its_bound():
+    """Ordinary least squares, known answer: y = a + b x with a known sd of 0.2 mm, scatter
+    within it, so the extra noise sits at its floor (1e-4 mm). The Laplace sds of a and b
+    are the OLS ones, sd_b = 0.2 / sqrt(Sxx), sd_a = 0.2 sqrt(1/n + xbar^2 / Sxx); before,
+    the one parameter at its bound cost both of them their curvature (every sd 0.01)."""
+    from test_discover_compare import X, Y, LineModel, _scan
+
+    m = fit_map(JointProblem([_scan(X, Y, 0.2)], [LineModel()], NoiseOptions(ar1=False, relative=False)))
+    sd = dict(zip(m.param_names, np.sqrt(np.diag(m.cov))))
+    assert m.theta[m.param_names.index("noise.sigma_extra_mm")] < 2e-4
+    sxx = float(np.sum((X - X.mean()) ** 2))
+    assert sd["line.b_mm"] == pytest.approx(0.2 / math.sqrt(sxx), rel=0.02)
+    assert sd["line.a_mm"] == pytest.approx(0.2 * math.sqrt(1 / len(X) + X.mean() ** 2 / sxx), rel=0.02)

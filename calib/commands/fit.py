@@ -39,6 +39,9 @@ def add_parser(sub):
     p.add_argument("--student-t", type=float, default=None, metavar="NU",
                    help="Student-t noise with NU degrees of freedom (robust to outliers)")
     p.add_argument("--no-ar1", action="store_true", help="the bead's wobble uncorrelated along the track: samples independent (not advised)")
+    p.add_argument("--constant-wobble", action="store_true",
+                   help="the bead's wobble the same size at every width (default: an sd fixed in "
+                        "mm plus one in proportion to the width, noise.sigma_rel; fit/likelihood.py)")
     p.add_argument("--ignore-missing", action="store_true",
                    help="drop the stations flagged 'missing' (no bead seen) instead of fitting "
                         "them as beads narrower than the scan can see (default: fit them)")
@@ -73,10 +76,11 @@ def data_pairs(args) -> list[tuple[str, str]]:
 
 def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=None, ar1=True,
             max_steps=20000, max_time_s=None, seed=0, progress=True, map_only=False,
-            chi2_max=None, missing=True):
+            chi2_max=None, missing=True, relative=True):
     """Load, fit and return (FitResult or MapResult, JointProblem). Shared with `calib batch`.
     ``missing``: fit the stations flagged missing as censored data (fit/likelihood.py);
-    False drops them (``--ignore-missing``)."""
+    False drops them (``--ignore-missing``). ``relative``: the wobble's sd has a part in
+    proportion to the width (``--constant-wobble`` turns it off)."""
     from fit.data import FitData
     from fit.derived import derived_values
     from fit.likelihood import NoiseOptions
@@ -102,7 +106,7 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     if auto is not None:        # priors of effects the search did not choose do not apply
         names = make_problem(model_spec, data, None, None, extra).param_names
         user = {k: v for k, v in user.items() if k in names}
-    noise = NoiseOptions(ar1=ar1, student_nu=student_nu, missing=missing)
+    noise = NoiseOptions(ar1=ar1, student_nu=student_nu, missing=missing, relative=relative)
     problem = make_problem(model_spec, data, noise, user or None, extra)
     # what `calib measure` said of its widths: scan_bias priors, and a caution (fit/measurement.py)
     states = measurement.scan_states(data)
@@ -236,7 +240,7 @@ def run(args) -> int:
                            student_nu=args.student_t, ar1=not args.no_ar1,
                            max_steps=args.max_steps, max_time_s=args.max_time, seed=args.seed,
                            progress=not args.quiet, map_only=args.map_only, chi2_max=args.chi2_max,
-                           missing=not args.ignore_missing)
+                           missing=not args.ignore_missing, relative=not args.constant_wobble)
     if args.map_only:
         import json
         from calib.fileio import atomic_write_text
