@@ -108,7 +108,7 @@ def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
         lp = [float(problem.priors[i].log_prob(np.array([x]))[0]) for x in (dn, theta[i], up)]
         if all(np.isfinite(lp)) and up - theta[i] > 0 and theta[i] - dn > 0:
             P[j, j] = max(0.0, -(lp[2] - 2 * lp[1] + lp[0]) / ((up - dn) / 2) ** 2)
-    fixed, rel = problem.wobble_parts(theta, k)
+    fixed, rel = problem.wobble_parts(theta, k, pred(theta))
     M = whitening_matrix(sc, fixed, None if i_cor is None else float(theta[i_cor]),
                          0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm, rel)
     Jw = M @ J

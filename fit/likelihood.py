@@ -17,29 +17,29 @@ Noise model (per valid sample i, along one track, stations ordered by arc length
 
 and with ``relative`` (the default) the long wobble's sd at station i is
 
-    h_i = sigma_extra sqrt(1 - f + f (c_i / c_med)^2)    (mm; c_i the commanded width there)
+    h_i = sigma_extra sqrt(1 - f + f (m_i / c_ref)^2)    (mm; m_i >= 0 the model width there)
 
 i.e. x_i = h_i u_i with u a unit OU process: a bead wanders in proportion to its width
 (filament diameter, the flow itself) as well as by a fixed amount (plate, picture).
-f = ``noise.rel_share`` in [0, 1] (uniform prior), c_med the scan's median commanded width,
+f = ``noise.rel_share`` in [0, 1] (uniform prior), c_ref the scan's median commanded width,
 so sigma_extra is the wobble's sd at the typical width whatever f: a print of one width
 cannot tell f, and then only f wanders (h_i^2 = sigma_extra^2 + (sigma_rel m_i)^2 made the
-two sds one ridge, and a joint fit lost its way on it). The commanded width scales it, a
-fixed design column, so the filter stays linear-Gaussian in the residual with gains that
-do not depend on theta: with the model's width m_i a fit could "explain" beads by
-predicting them narrow where their wobble vanishes (a line fit fell into a = 0.03 mm, b =
--0.12 for 0.3 / 0.6), and with the measured width y_i the covariance depends on the data
-and the "likelihood" is no density (the same fit preferred a = 0.22, b = 0.44 by 211 in
-ln L: a gain error r = 0.26 y is a constant state of a wobble that grows with y). Where
-the bead lags its command (a Bowden step) the commanded width is the approximation.
+two sds one ridge, and a joint fit lost its way on it). The variance depends on theta
+through m, as in any regression whose noise grows with its mean; the alternatives are
+worse: with the measured width y_i the covariance depends on the data and the
+"likelihood" is no density (a line fit preferred a = 0.22, b = 0.44 for 0.3 / 0.6 by 211
+in ln L: a gain error r = 0.26 y is a constant state of a wobble that grows with y), and
+with the commanded width the lagging beads of a Bowden step grow it in the wrong place
+(thermal.tau_s scatter 9.9 s against 3.1 with m, the share read 0.55 for ~1).
 
-Why: on a Bowden scene whose beads run 0.3-0.8 mm wide, a 1.2 % wobble over 20 mm fitted
-with a constant-sd one read thermal.tau_s with a scatter of 11 s over 10 noise draws
-against a Laplace sd of 3.3 s (tau 0.015 s against 0.009, scan_bias.b1 0.017 against
-0.005): the wide beads' larger wobble is slow structure tied to the width, and thermal
-ooze with a long time constant and a width scale fit it. With h_i: 2.9 s against 3.5, tau
-0.008 against 0.008, b1 0.003 against 0.005; an additive wobble fitted with it reads as
-before (tau_s scatter 3.3 s).
+Why: on a Bowden scene whose beads run 0.3-0.8 mm wide (bench_e2e's adventurer3 spiral,
+the virtual printer's true widths), a 1.2 % wobble over 20 mm drawn from this OU process
+and fitted with a constant-sd one (f = 0) read tau with a scatter of 0.015 s over 10 draws
+against a Laplace sd of 0.009, thermal.tau_s 11 s against 3.3, scan_bias.b1 0.017 against
+0.005: the wide beads' larger wobble is slow structure tied to the width, and thermal ooze
+with a long time constant and a width scale fit it. With f free (8 draws): 0.009 against
+0.009, 3.1 s against 4.2, 0.003 against 0.005, f 0.93-1.0; an additive wobble reads f = 0
+and the values as before (rms z 0.9-1.3).
 
 So the wobble is an Ornstein-Uhlenbeck process of sd h_i (sigma_extra without
 ``relative``) and correlation length ell (and with ``short``, a second one of sd
@@ -303,15 +303,15 @@ def missing_loglik(pred_mm, w_min_mm, sigma_extra_mm, student_nu=None,
     return np.where(np.isfinite(ll), ll, -np.inf)
 
 
-def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, wr, ell, sig_s, ell_s, nu, c_t, out):
+def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, c_ref, ell, sig_s, ell_s, nu, c_t, out):
     """Compiled :func:`pointwise_loglik` fused with the residuals: for every set i and
     valid sample j, r = y_j - pred[i, order_j], through the two-component Kalman filter
     of the module docstring (long wobble sig[i], ell[i]; short wobble sig_s[i] with the
     fixed correlation length ell_s); ell[i] <= 0 means independent x (and no short
     component); nu <= 0 Gaussian, else Student-t with log normaliser c_t; share[i] the
-    relative wobble's share f and wr[j] the j-th sample's commanded width over the scan's
-    median one: the long wobble's sd there is sig sqrt(1 - f + f wr^2) (module docstring;
-    :func:`_kalman`).
+    relative wobble's share f and c_ref the scan's median commanded width (mm): the long
+    wobble's sd at a sample of model width m is sig sqrt(1 - f + f (max(m, 0) / c_ref)^2)
+    (module docstring; :func:`_kalman`).
     Writes out (n_sets, n). With sig_s = 0 the short state stays 0 and the arithmetic is
     the one-component filter's, term for term."""
     n_sets = pred.shape[0]
@@ -319,6 +319,7 @@ def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, wr, ell, sig_s, ell_s
     for i in prange(n_sets):
         s2x = sig[i] * sig[i]
         f = share[i]
+        q = 1.0 / (c_ref * c_ref)
         s2y = sig_s[i] * sig_s[i] if ell[i] > 0.0 else 0.0
         el = ell[i]
         a = 0.0
@@ -336,14 +337,15 @@ def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, wr, ell, sig_s, ell_s
                     phi = math.exp(-g / el)
                     phi2 = math.exp(-g / ell_s) if s2y > 0.0 else 0.0
                     g_prev = g
-            h = sig[i] * math.sqrt(1.0 - f + f * wr[j] * wr[j]) if f > 0.0 else sig[i]
+            m = pred[i, order[j]]
+            h = sig[i] * math.sqrt(1.0 - f + f * max(m, 0.0) * max(m, 0.0) * q) if f > 0.0 else sig[i]
             ap = phi * a
             bp = phi2 * b
             Pp = phi * phi * P + (1.0 - phi * phi)
             P12p = phi * phi2 * P12
             P22p = phi2 * phi2 * P22 + (1.0 - phi2 * phi2) * s2y
             F = h * h * Pp + 2.0 * h * P12p + P22p + sd2[j]
-            v = y[j] - pred[i, order[j]] - h * ap - bp
+            v = y[j] - m - h * ap - bp
             if nu <= 0.0:
                 ll = -0.5 * (v * v / F + math.log(F) + LOG2PI)
             else:
@@ -366,19 +368,18 @@ def ar1_phi(gap_mm: np.ndarray, corr_len_mm) -> np.ndarray:
     return np.exp(-gap_mm[None, :] / np.asarray(corr_len_mm))
 
 
-def _relative_widths(scan) -> np.ndarray:
-    """(n_valid,) the commanded width of each valid sample of ``scan`` (its manifest's, at
-    ``scan.order``) over their median; 1 where it is unknown or not positive."""
-    n = len(scan.y_mm)
+def _median_commanded_mm(scan) -> float:
+    """The median commanded width (mm) of ``scan``'s valid samples (its manifest's, at
+    ``scan.order``); the median measured width where the manifest has none."""
     smp = getattr(scan, "samples", None)
     w = getattr(smp, "width_nominal_mm", None)
-    if w is None or n == 0:
-        return np.ones(n)
-    w = np.asarray(w, dtype=float)[np.asarray(scan.order)]
-    ok = np.isfinite(w) & (w > 0)
-    if not ok.any():
-        return np.ones(n)
-    return np.ascontiguousarray(np.where(ok, w / float(np.median(w[ok])), 1.0))
+    if w is not None and len(scan.y_mm):
+        w = np.asarray(w, dtype=float)[np.asarray(scan.order)]
+        w = w[np.isfinite(w) & (w > 0)]
+        if len(w):
+            return float(np.median(w))
+    y = np.abs(np.asarray(scan.y_mm, dtype=float))
+    return float(np.median(y)) if len(y) and np.median(y) > 0 else 0.5
 
 
 def censored_rows(scan) -> np.ndarray:
@@ -430,9 +431,9 @@ class JointProblem:
         self.index: list[np.ndarray] = []        # per scan: global index of each model param
         self.noise_index: list[tuple[int, int | None, int | None]] = []
         self.rel_index: list[int | None] = []       # per scan: noise.rel_share (relative wobble)
-        # per scan: each valid sample's commanded width over the scan's median one, what
-        # the relative wobble grows with (module docstring; 1 where the manifest has none)
-        self.w_rel = [_relative_widths(sc) for sc in scans]
+        # per scan: the median commanded width (mm), where sigma_extra is the wobble's sd
+        # whatever its relative share (module docstring)
+        self.c_ref_mm = [_median_commanded_mm(sc) for sc in scans]
         shared_pos = {}
         for n in names0:
             if not (joint and is_nuisance(n)):
@@ -512,9 +513,12 @@ class JointProblem:
                 th[i_cor] = 0.5
             if i_short is not None:
                 th[i_short] = 0.001
+        # the relative share starts at 0, the constant-sd wobble: from 0.5 the toy joint fit
+        # of tests/test_fit_core.py fell into the basin where a 0.12 mm wobble absorbs the
+        # flow steps (tau at its 3 s bound, ln posterior 136 below the truth's)
         for i_rel in self.rel_index:
             if i_rel is not None:
-                th[i_rel] = 0.5
+                th[i_rel] = 0.0
         lo, hi = self.bounds.T
         return np.clip(th, lo, hi)
 
@@ -583,7 +587,7 @@ class JointProblem:
             share = np.ascontiguousarray(th[:, i_rel]) if i_rel is not None else np.zeros(n_sets)
             n = len(sc.order)
             buf = out if direct else np.empty((n_sets, n))
-            kern(pred, *self._kernel_arrays(k), sig, share, self.w_rel[k], ell, sig_s,
+            kern(pred, *self._kernel_arrays(k), sig, share, self.c_ref_mm[k], ell, sig_s,
                  float(self.noise.short_corr_mm), nu_f, c_t, buf)
             if buf is not out:
                 out[:, col:col + n] = buf
@@ -609,17 +613,18 @@ class JointProblem:
                               np.ascontiguousarray(sc.gap_mm, dtype=float)))
         return cache[k][1]
 
-    def wobble_parts(self, theta, k: int) -> tuple[float, np.ndarray | None]:
+    def wobble_parts(self, theta, k: int, pred_mm) -> tuple[float, np.ndarray | None]:
         """The long wobble of scan ``k`` as (fixed sd, relative sd per valid sample or None)
         (mm), h^2 = fixed^2 + rel^2 (module docstring): sigma_extra sqrt(1 - f) and
-        sigma_extra sqrt(f) w_nom / w_ref, for one theta."""
+        sigma_extra sqrt(f) max(m, 0) / c_ref, for one theta and its model widths ``pred_mm``
+        at the valid samples (mm)."""
         th = np.asarray(theta, dtype=float)
         sig = float(th[self.noise_index[k][0]])
         i_rel = self.rel_index[k]
         if i_rel is None:
             return sig, None
         f = float(th[i_rel])
-        return sig * math.sqrt(1.0 - f), sig * math.sqrt(f) * self.w_rel[k]
+        return sig * math.sqrt(1.0 - f), sig * math.sqrt(f) * np.maximum(np.asarray(pred_mm, dtype=float), 0.0) / self.c_ref_mm[k]
 
     def residuals(self, theta) -> list[np.ndarray]:
         """Residuals y - m (mm) at the valid samples of each scan, for one theta."""
@@ -634,7 +639,7 @@ class JointProblem:
         for k, sc in enumerate(self.scans):
             m = self.predict(th, k)[0, sc.order]
             i_sig, i_cor, i_short = self.noise_index[k]
-            fixed, rel = self.wobble_parts(th[0], k)
+            fixed, rel = self.wobble_parts(th[0], k, m)
             out.append(whiten(sc.y_mm - m, sc.sd_mm, fixed, sc.gap_mm, None if i_cor is None else th[0, i_cor],
                               0.0 if i_short is None else float(th[0, i_short]), self.noise.short_corr_mm, rel))
         return np.concatenate(out)

@@ -110,7 +110,7 @@ def test_loglik_equals_exact_multivariate_normal():
     # the compiled kernel of the sampler gives the same terms
     from fit.likelihood import _AR1_SERIAL
     out = np.empty((1, n))
-    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.zeros(1), np.ones(n),
+    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.zeros(1), 0.5,
                 np.array([ell]), np.zeros(1), 0.4, -1.0, 0.0, out)
     assert np.allclose(out, ll, rtol=1e-12, atol=1e-12)
     # with the short wobble (sd sig_s, correlation length ell_s): the sum of two OU
@@ -122,21 +122,21 @@ def test_loglik_equals_exact_multivariate_normal():
                            phi_short=ar1_phi(gap, np.array([[ell_s]])))
     assert ll2.sum() == pytest.approx(exact2, rel=1e-10)
     assert abs(exact2 - exact) > 1.0            # the short wobble changes the density
-    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.zeros(1), np.ones(n),
+    _AR1_SERIAL(r[None] * 0 + 1.0, np.arange(n), 1.0 + r, sd ** 2, gap, np.array([sig]), np.zeros(1), 0.5,
                 np.array([ell]), np.array([sig_s]), ell_s, -1.0, 0.0, out)
     assert np.allclose(out, ll2, rtol=1e-12, atol=1e-12)
 
 
 def test_relative_wobble_is_exact_gaussian_loglik():
     """With the relative wobble the long wobble's sd at station i is h_i = sig sqrt(1 - f +
-    f (c_i / w_ref)^2), c_i the commanded width: covariance diag(sd^2) + h_i h_j exp(-|d| / ell)
+    f (m_i / w_ref)^2), m_i the model width: covariance diag(sd^2) + h_i h_j exp(-|d| / ell)
     within a track. The Kalman filter (reference and compiled) gives the dense Gaussian's
     log-density, and f = 0 gives the plain filter's terms."""
     from fit.likelihood import _AR1_SERIAL
     rng = np.random.default_rng(4)
     n, sig, f, w_ref, ell = 50, 0.008, 0.7, 0.6, 3.0
     sd = rng.uniform(0.002, 0.006, n)
-    m = rng.uniform(0.3, 1.2, n)                     # model = commanded widths (mm)
+    m = rng.uniform(0.3, 1.2, n)                     # model widths (mm)
     s = np.cumsum(rng.uniform(0.1, 0.6, n))
     track = (np.arange(n) >= 30).astype(int)
     gap = np.r_[np.inf, np.diff(s)]
@@ -151,10 +151,10 @@ def test_relative_wobble_is_exact_gaussian_loglik():
                           rel_mm=(sig * math.sqrt(f) * m / w_ref)[None])
     assert ll.sum() == pytest.approx(exact, rel=1e-10)
     out = np.empty((1, n))
-    _AR1_SERIAL(m[None], np.arange(n), y, sd ** 2, gap, np.array([sig]), np.array([f]), m / w_ref,
+    _AR1_SERIAL(m[None], np.arange(n), y, sd ** 2, gap, np.array([sig]), np.array([f]), w_ref,
                 np.array([ell]), np.zeros(1), 0.4, -1.0, 0.0, out)
     assert np.allclose(out, ll, rtol=1e-12, atol=1e-12)
-    _AR1_SERIAL(m[None], np.arange(n), y, sd ** 2, gap, np.array([sig]), np.zeros(1), m / w_ref,
+    _AR1_SERIAL(m[None], np.arange(n), y, sd ** 2, gap, np.array([sig]), np.zeros(1), w_ref,
                 np.array([ell]), np.zeros(1), 0.4, -1.0, 0.0, out)
     assert np.allclose(out, pointwise_loglik((y - m)[None], sd, sig, ar1_phi(gap, [[ell]])), rtol=1e-12)
 

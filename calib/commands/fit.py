@@ -40,8 +40,8 @@ def add_parser(sub):
                    help="Student-t noise with NU degrees of freedom (robust to outliers)")
     p.add_argument("--no-ar1", action="store_true", help="the bead's wobble uncorrelated along the track: samples independent (not advised)")
     p.add_argument("--constant-wobble", action="store_true",
-                   help="the bead's wobble the same size at every width (default: an sd fixed in "
-                        "mm plus one in proportion to the width, noise.sigma_rel; fit/likelihood.py)")
+                   help="the bead's wobble the same size at every width (default: a share "
+                        "noise.rel_share of its variance grows with the width; fit/likelihood.py)")
     p.add_argument("--ignore-missing", action="store_true",
                    help="drop the stations flagged 'missing' (no bead seen) instead of fitting "
                         "them as beads narrower than the scan can see (default: fit them)")
