@@ -231,11 +231,11 @@ def _kalman(r, sd2, s2x, phi, s2y=None, phi2=None, rel_mm=None):
     noise model: sd2 (n,) measurement variances, s2x (n_sets,) sigma_extra^2, phi
     (n_sets, n) or None (independent x); s2y (n_sets,) sigma_short^2 and phi2 (n_sets, n)
     of the short wobble, or None (absent); rel_mm (n_sets, n) the relative wobble's sd at
-    each station (mm; :meth:`JointProblem.wobble_parts`), or None. The long wobble is a unit AR(1) state seen
-    through h_j = sqrt(sigma_extra^2 + rel_j^2) (without rel, h is constant and this is
-    the plain filter of the module docstring with its state scaled by sigma_extra). Linear
-    in r: whitening any vector (a Jacobian for a Cramer-Rao bound) is v / sqrt(F) with the
-    same gains."""
+    each station (mm; :meth:`JointProblem.wobble_parts`), or None. The long wobble is a
+    unit AR(1) state seen through h_j = sqrt(sigma_extra^2 + rel_j^2) (without rel, h is
+    constant and this is the plain filter of the module docstring with its state scaled by
+    sigma_extra). Linear in r: whitening any vector (a Jacobian for a Cramer-Rao bound) is
+    v / sqrt(F) with the same gains."""
     n_sets, n = r.shape
     v = np.empty_like(r)
     F = np.empty_like(r)
@@ -624,7 +624,8 @@ class JointProblem:
         if i_rel is None:
             return sig, None
         f = float(th[i_rel])
-        return sig * math.sqrt(1.0 - f), sig * math.sqrt(f) * np.maximum(np.asarray(pred_mm, dtype=float), 0.0) / self.c_ref_mm[k]
+        m = np.maximum(np.asarray(pred_mm, dtype=float), 0.0)
+        return sig * math.sqrt(1.0 - f), sig * math.sqrt(f) * m / self.c_ref_mm[k]
 
     def residuals(self, theta) -> list[np.ndarray]:
         """Residuals y - m (mm) at the valid samples of each scan, for one theta."""
