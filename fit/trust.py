@@ -47,6 +47,15 @@ Problems
   different printers explain the scan about equally well (parameters of the bead and the
   picture, fit/nuisance.py NOT_PASTED, do not count).
 
+- ``rides the offset``: the widths are apparent (no width reference calibrated them: the
+  prior sd of ``scan_bias.b0_mm`` is >= ``OFFSET_DOUBT_MM``), so the model, not a
+  reference, placed the width offset, and an offset ``OFFSET_DOUBT_MM`` away would move
+  the exported pressure-advance value outside its 95 % interval (:func:`offset_riders`).
+  Measured on the Bowden Adventurer 3 scene (README): thermal's long tail, b0 and b1 are
+  one direction in the likelihood; the bead's wander placed b0 12 um off (3 posterior sds)
+  and thermal.tau_s read 80 s [54, 115] for a truth of 25 s, "trusted". A rider that
+  export does not paste (thermal, back-pressure) is a caution naming it.
+
 Cautions
 - PSIS-LOO Pareto k > 0.7 on more than 1 % of the samples (Vehtari et al. 2017): a few
   samples drive the fit (blobs, mis-registered track ends); check the QA overlay.
@@ -65,6 +74,15 @@ STRUCTURE_SCORE = 0.10
 STRUCTURE_P = 0.01
 PARETO_K_BAD = 0.7
 PARETO_K_SHARE = 0.01
+#: How far (mm) the width offset that the model infers from uncalibrated widths can be
+#: off: on the Bowden Adventurer 3 scene (README) scan_bias.b0 read -34 um for a true
+#: -46 um with a posterior sd of 4 um.
+OFFSET_DOUBT_MM = 0.010
+#: A value "rides the offset" when an offset error of OFFSET_DOUBT_MM moves it by more
+#: than this many posterior sds (outside its 95 % interval).
+RIDE_Z = 1.96
+#: What `calib export` pastes into the firmware (a rider among these is a problem).
+EXPORTED = ("pa.tau_s", "pave.ve_us")
 
 
 @dataclass
@@ -170,6 +188,18 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
             at_bound.append(name)
     checks["at_bound"] = at_bound
 
+    riders = offset_riders(doc)
+    checks["offset_riders"] = riders
+    for r in riders:
+        what = (f"{r['param']} rides the width offset: the widths are uncalibrated, so the model "
+                f"placed the offset ({r['offset']} = {1000 * r['offset_mm']:+.0f} um), and "
+                f"{1000 * OFFSET_DOUBT_MM:.0f} um more or less moves it to {r['low']:.4g} or "
+                f"{r['high']:.4g}, outside its 95 % interval [{r['ci95'][0]:.4g}, {r['ci95'][1]:.4g}]")
+        if r["param"].split("@")[0] in EXPORTED:
+            problems.append(what)
+        else:
+            cautions.append(what + "; do not rely on it until the widths are calibrated")
+
     modes = (doc.get("map") or {}).get("modes") or []
     rivals = []
     if len(modes) > 1:
@@ -220,6 +250,10 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
     elif any("does not fit" in p for p in problems) or structured:
         advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
                   "missing effect, then fit the model it names")
+    elif riders and any(r["param"].split("@")[0] in EXPORTED for r in riders):
+        advice = ("calibrate the widths: print the pattern with its width reference (the prime "
+                  "line of `calib pattern`) and scan it so the reference is measured, or give "
+                  "scan_bias.b0_mm a prior from a ruler line of known width (--priors)")
     elif at_bound:
         advice = ("the test did not constrain these values; print a pattern that does (other "
                   "speeds or widths) or widen the prior with --priors if the range is too narrow")
@@ -257,3 +291,51 @@ def residual_structure(problem, theta, n_null: int = 200, seed: int = 0) -> dict
             best = {"scan": sc.name, "covariate": scores[0].name, "score": float(scores[0].score),
                     "p_value": float(scores[0].p_value)}
     return best
+
+
+def offset_riders(doc: dict, doubt_mm: float = OFFSET_DOUBT_MM, z: float = RIDE_Z) -> list[dict]:
+    """Values that ride an uncalibrated width offset (module docstring, ``rides the offset``).
+
+    For every ``scan_bias.b0_mm`` (one per scan) whose prior sd is >= ``doubt_mm`` and every
+    pasted parameter (fit.nuisance.pasted), the posterior draws give the value's linear
+    response to the offset, slope = cov(x, b0) / var(b0), x the value (its log for a
+    positive parameter, whose posterior is skewed). The value at b0 -+ ``doubt_mm``
+    is the median moved by slope x doubt; a rider moves by more than ``z`` posterior sds.
+    Returns [{"param", "offset", "offset_mm", "slope_sd", "low", "high", "ci95"}].
+    """
+    import numpy as np
+
+    names = list(doc.get("param_names") or [])
+    draws = np.asarray(doc.get("samples", []), dtype=float)
+    params, priors = doc.get("params", {}), doc.get("priors", {})
+    if draws.ndim != 2 or draws.shape[0] < 20 or draws.shape[1] != len(names):
+        return []
+    out = []
+    for j, b in enumerate(names):
+        sd_prior = (priors.get(b) or {}).get("sd")
+        if b.split("@")[0] != "scan_bias.b0_mm" or sd_prior is None or float(sd_prior) < doubt_mm:
+            continue
+        bj = draws[:, j]
+        var_b = float(np.var(bj))
+        if not var_b > 0:
+            continue
+        for i, n in enumerate(names):
+            if not pasted(n) or n not in params:
+                continue
+            x = draws[:, i]
+            positive = bool(np.all(x > 0))
+            x = np.log(x) if positive else x
+            sd_x = float(np.std(x))
+            if not sd_x > 0:
+                continue
+            slope = float(np.mean((x - x.mean()) * (bj - bj.mean()))) / var_b
+            move = slope * doubt_mm
+            if abs(move) <= z * sd_x:
+                continue
+            mid = float(np.median(x))
+            ends = sorted((mid - move, mid + move))
+            low, high = (float(np.exp(e)) if positive else float(e) for e in ends)
+            out.append({"param": n, "offset": b, "offset_mm": float(np.median(bj)),
+                        "slope_sd": abs(move) / sd_x, "low": low, "high": high,
+                        "ci95": [float(v) for v in params[n]["ci95"]]})
+    return out

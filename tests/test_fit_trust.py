@@ -192,3 +192,57 @@ def test_a_rival_mode_that_differs_only_in_the_bead_or_the_picture_is_not_a_seco
     doc["map"] = {"modes": [best, printer]}
     v = assess(doc)
     assert not v.trustworthy and "pa.tau_s = 0.02" in v.problems[0] and "spread" not in v.problems[0]
+
+
+def _riding_doc(beta, b0_prior_sd=0.03, n=4000, seed=0, rider="thermal.tau_s"):
+    """Posterior draws where ln(rider) = ln(c) + beta (b0 - b0_med) + eps, eps sd 0.1, c =
+    30 s (thermal) or 0.8 s (pa), and pa.tau_s is independent of b0 when it is not the
+    rider (known answer of offset_riders: the ends are c exp(-+beta x 10 um))."""
+    rng = np.random.default_rng(seed)
+    b0 = -0.045 + 0.004 * rng.standard_normal(n)
+    eps = 0.1 * rng.standard_normal(n)
+    centre = 0.8 if rider == "pa.tau_s" else 30.0
+    ride = np.exp(np.log(centre) + beta * (b0 + 0.045) + eps)
+    other = 0.3 + 0.003 * rng.standard_normal(n) if rider != "pa.tau_s" else None
+    doc = _doc()
+    cols = {"scan_bias.b0_mm": b0, rider: ride}
+    if other is not None:
+        cols["pa.tau_s"] = other
+    doc["param_names"] = list(cols)
+    doc["samples"] = np.column_stack(list(cols.values()))
+    for name, x in cols.items():
+        lo, med, hi = np.quantile(x, [0.025, 0.5, 0.975])
+        doc["params"][name] = {"median": float(med), "ci95": [float(lo), float(hi)]}
+    doc["priors"]["scan_bias.b0_mm"] = {"kind": "normal", "mu": 0.0, "sd": b0_prior_sd,
+                                        "lower": -0.3, "upper": 0.3}
+    doc["priors"][rider] = ({"kind": "loguniform", "lower": 0.005, "upper": 5.0} if rider == "pa.tau_s"
+                            else {"kind": "loguniform", "lower": 1.0, "upper": 300.0})
+    return doc
+
+
+def test_a_value_that_rides_an_uncalibrated_offset_is_named():
+    """The Bowden scene's thermal.tau_s (README): an offset error of 10 um moves it by 2.2
+    posterior sds. Known answer: with ln(tau_s) = ln 30 + beta (b0 - b0_med) + noise the
+    ends are 30 exp(-+beta 0.01)."""
+    from fit.trust import offset_riders
+
+    beta = 60.0                      # per mm: 10 um -> 0.6 in ln, against a posterior sd of ~0.26
+    doc = _riding_doc(beta)
+    r = offset_riders(doc)
+    assert [x["param"] for x in r] == ["thermal.tau_s"]        # pa.tau_s is independent of b0
+    assert r[0]["low"] == pytest.approx(30 * math.exp(-beta * 0.01), rel=0.05)
+    assert r[0]["high"] == pytest.approx(30 * math.exp(beta * 0.01), rel=0.05)
+    v = assess(doc)
+    # thermal is not what export pastes: a caution naming it, the fit stays usable
+    assert v.trustworthy and any("thermal.tau_s rides the width offset" in c for c in v.cautions)
+    # a weak ride (10 um moves it by ~1 sd) is not named
+    assert offset_riders(_riding_doc(25.0)) == []
+    # calibrated widths (b0's prior from the width reference, sd 2 um): the posterior holds it
+    assert offset_riders(_riding_doc(beta, b0_prior_sd=0.002)) == []
+
+
+def test_an_exported_value_that_rides_the_offset_is_refused():
+    doc = _riding_doc(60.0, rider="pa.tau_s")
+    v = assess(doc)
+    assert not v.trustworthy and "pa.tau_s rides the width offset" in v.problems[0]
+    assert "calibrate the widths" in v.advice
