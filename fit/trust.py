@@ -52,9 +52,10 @@ Problems
   reference, placed the width offset, and an offset ``OFFSET_DOUBT_MM`` away would move
   the exported pressure-advance value outside its 95 % interval (:func:`offset_riders`).
   Measured on the Bowden Adventurer 3 scene (README): thermal's long tail, b0 and b1 are
-  one direction in the likelihood; the bead's wander placed b0 12 um off (3 posterior sds)
-  and thermal.tau_s read 80 s [54, 115] for a truth of 25 s, "trusted". A rider that
-  export does not paste (thermal, back-pressure) is a caution naming it.
+  one direction in the likelihood; the bead's wander placed b0 15 um off (3 posterior sds)
+  and thermal.tau_s read 80 s [56, 114] for a truth of 25 s, "trusted" (an offset 15 um
+  further moves it by 2.8 sds: named). A rider that export does not paste (thermal,
+  back-pressure) is a caution naming it.
 
 Cautions
 - PSIS-LOO Pareto k > 0.7 on more than 1 % of the samples (Vehtari et al. 2017): a few
@@ -75,9 +76,10 @@ STRUCTURE_P = 0.01
 PARETO_K_BAD = 0.7
 PARETO_K_SHARE = 0.01
 #: How far (mm) the width offset that the model infers from uncalibrated widths can be
-#: off: on the Bowden Adventurer 3 scene (README) scan_bias.b0 read -34 um for a true
-#: -46 um with a posterior sd of 4 um.
-OFFSET_DOUBT_MM = 0.010
+#: off: on the Bowden Adventurer 3 scene (README, widths from the constant-speed reference
+#: that never settled) scan_bias.b0 read -30 and -31 um on seeds 6 and 2 for a true -45
+#: (posterior sds 5 um: 3 sds off), -34 um at the MAP of session 17.
+OFFSET_DOUBT_MM = 0.015
 #: A value "rides the offset" when an offset error of OFFSET_DOUBT_MM moves it by more
 #: than this many posterior sds (outside its 95 % interval).
 RIDE_Z = 1.96

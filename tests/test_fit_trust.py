@@ -197,7 +197,7 @@ def test_a_rival_mode_that_differs_only_in_the_bead_or_the_picture_is_not_a_seco
 def _riding_doc(beta, b0_prior_sd=0.03, n=4000, seed=0, rider="thermal.tau_s"):
     """Posterior draws where ln(rider) = ln(c) + beta (b0 - b0_med) + eps, eps sd 0.1, c =
     30 s (thermal) or 0.8 s (pa), and pa.tau_s is independent of b0 when it is not the
-    rider (known answer of offset_riders: the ends are c exp(-+beta x 10 um))."""
+    rider (known answer of offset_riders: the ends are c exp(-+beta x OFFSET_DOUBT_MM))."""
     rng = np.random.default_rng(seed)
     b0 = -0.045 + 0.004 * rng.standard_normal(n)
     eps = 0.1 * rng.standard_normal(n)
@@ -221,22 +221,22 @@ def _riding_doc(beta, b0_prior_sd=0.03, n=4000, seed=0, rider="thermal.tau_s"):
 
 
 def test_a_value_that_rides_an_uncalibrated_offset_is_named():
-    """The Bowden scene's thermal.tau_s (README): an offset error of 10 um moves it by 2.2
+    """The Bowden scene's thermal.tau_s (README): an offset error of 15 um moves it by 2.8
     posterior sds. Known answer: with ln(tau_s) = ln 30 + beta (b0 - b0_med) + noise the
-    ends are 30 exp(-+beta 0.01)."""
-    from fit.trust import offset_riders
+    ends are 30 exp(-+beta OFFSET_DOUBT_MM)."""
+    from fit.trust import OFFSET_DOUBT_MM, offset_riders
 
-    beta = 60.0                      # per mm: 10 um -> 0.6 in ln, against a posterior sd of ~0.26
+    beta = 60.0                      # per mm: 15 um -> 0.9 in ln, against a posterior sd of ~0.26
     doc = _riding_doc(beta)
     r = offset_riders(doc)
     assert [x["param"] for x in r] == ["thermal.tau_s"]        # pa.tau_s is independent of b0
-    assert r[0]["low"] == pytest.approx(30 * math.exp(-beta * 0.01), rel=0.05)
-    assert r[0]["high"] == pytest.approx(30 * math.exp(beta * 0.01), rel=0.05)
+    assert r[0]["low"] == pytest.approx(30 * math.exp(-beta * OFFSET_DOUBT_MM), rel=0.05)
+    assert r[0]["high"] == pytest.approx(30 * math.exp(beta * OFFSET_DOUBT_MM), rel=0.05)
     v = assess(doc)
     # thermal is not what export pastes: a caution naming it, the fit stays usable
     assert v.trustworthy and any("thermal.tau_s rides the width offset" in c for c in v.cautions)
-    # a weak ride (10 um moves it by ~1 sd) is not named
-    assert offset_riders(_riding_doc(25.0)) == []
+    # a weak ride (15 um moves it by ~1.6 sd) is not named
+    assert offset_riders(_riding_doc(12.0)) == []
     # calibrated widths (b0's prior from the width reference, sd 2 um): the posterior holds it
     assert offset_riders(_riding_doc(beta, b0_prior_sd=0.002)) == []
 
