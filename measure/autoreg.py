@@ -79,12 +79,20 @@ def path_segments(manifest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Printed segments of all extruding tracks: starts (N, 2) mm, ends (N, 2) mm and widths
     (N,) mm (the smaller of the two vertex widths; segments wider than
     MAX_TEMPLATE_WIDTH_NOZZLES nozzle diameters are left out). Label tracks are left out
-    (their text is drawn differently by every slicer); none at all raises UserError."""
+    (their text is drawn differently by every slicer), and so is the serpentine width
+    reference (below); none at all raises UserError."""
     nozzle = float(manifest.printer.get("nozzle_diameter_mm", 0.4) or 0.4)
     cap = MAX_TEMPLATE_WIDTH_NOZZLES * nozzle
     a, b, w = [], [], []
     for tr in manifest.tracks:
         if tr.kind == "label" or len(tr.points_mm) < 2:
+            continue
+        if tr.params.get("role") == "width_reference" and tr.params.get("straight_mm"):
+            # the serpentine width reference (patterns/builder.py frame_prime): parallel
+            # passes that a mirrored pose lays onto themselves. On a phone render of a
+            # one-spiral print the true pose scored 0.482 and its mirror 0.473 with them,
+            # 0.426 / 0.356 with the first pass alone (four lines in the picture where
+            # the template has one), 0.630 / 0.492 without the reference
             continue
         p = np.asarray(tr.points_mm, float)
         ww = np.minimum(np.asarray(tr.width_mm, float)[:-1], np.asarray(tr.width_mm, float)[1:])
@@ -627,11 +635,23 @@ def auto_register(gray, manifest, **kw):
     The result's ``info`` holds the search's scores; ``info["refusal"]`` is set (one line)
     when nothing convincing was found or two different poses fit alike, for the caller to
     refuse after drawing the QA overlay. Keywords go to :func:`find_pose`."""
-    from measure.register import register
+    from measure.register import PHONE_FOCAL_FRACTION, Registration, register
 
     found = find_pose(gray, manifest, **kw)
     t1 = time.perf_counter()
-    reg = register(gray, manifest, start_H=found["H"])
+    try:
+        reg = register(gray, manifest, start_H=found["H"])
+    except UserError:
+        if found["score"] >= MIN_SCORE and not found["ambiguous"]:
+            raise
+        # nothing convincing was found, and its best guess does not even hold the print:
+        # that guess, unrefined, so the refusal below still comes with its overlay
+        h, w = np.asarray(gray).shape[:2]
+        reg = Registration(H=found["H"] / found["H"][2, 2],
+                           distortion={"center_px": ((w - 1) / 2, (h - 1) / 2),
+                                       "f_px": PHONE_FOCAL_FRACTION * max(w, h), "k1": 0.0, "k2": 0.0},
+                           residual_mm=float("nan"), n_markers=0, mirrored=found["mirrored"], method="auto",
+                           image_size=(w, h))
     info = {k: v for k, v in found.items() if k not in ("H",)}
     info["time_s"] = found["time_s"] + (time.perf_counter() - t1)
     if found["score"] < MIN_SCORE:

@@ -10,20 +10,38 @@ offset is -30 to -50 um per bead; on real white PLA it changed sign between prin
 the flank is a half-round of the layer height whatever the width), so it is an
 additive offset b0, while a flow error or a scan-scale error multiplies (g).
 
-The reference: the pattern's prime line (patterns/builder.py ``frame_prime``) is printed
-slowly in sections of two commanded widths w_k (1 and 2.5 nozzle diameters), each long
-enough for the flow to settle. Over the settled part of each section (>= SETTLE_S after
-the width last changed) the apparent width is modelled as
+The reference: the pattern's prime line (patterns/builder.py ``frame_prime``), a
+serpentine in the top band printed at one volumetric flow in alternating sections of two
+commanded widths w_k (2.5 and 1 nozzle diameters: the width changes with the head's speed,
+so the extruder never sees a flow step). Each section's apparent width settles after its
+width change as
 
-    a = g * w_k + b0                                                        (1)
+    a(t) = a_k + c exp(-t / T)                                              (2)
 
-fitted by weighted least squares to the section medians (weights from each section's
-spread, with stations 4 apart counted as independent: the profile windows overlap).
-Two widths determine g (flow x scale: reported, *not* applied, it is the printer's flow
-and the fit's ``flow_gain``) and b0 (the scan's edge offset: subtracted from every
-measured width). Its sd becomes the prior width of the fit's ``scan_bias.b0_mm``
-(fit/effects.py ScanBias), so the fit neither trusts the offset more than measured nor
-lets it masquerade as back-pressure.
+(:func:`settled_width`: the bead's back-pressure draining through the pressure time
+constant), and its limit a_k is modelled as
+
+    a_k = g(t_k) * w_k + b0,   g(t) = g + g1 (t - mean t) / 10 s                (1)
+
+fitted by weighted least squares (stations 4 apart counted as independent: the profile
+windows overlap; g1 only with two sections of each width, else g is constant). Two widths
+determine g (flow x scale: reported, *not* applied, it is the printer's flow and the
+fit's ``flow_gain``) and b0 (the scan's edge offset: subtracted from every measured
+width). Its sd becomes the prior width of the fit's ``scan_bias.b0_mm`` (fit/effects.py
+ScanBias), so the fit neither trusts the offset more than measured nor lets it masquerade
+as back-pressure.
+
+Why this shape (measured on the Adventurer 3 truth: tau 0.8 s, thermal ooze 0.05 over
+25 s, back-pressure Kb 1): the earlier reference, one straight line at one slow *speed*
+in sections 1 / 2.5 / 1 nozzles of 5 s, drifted 60-100 um over its settled part and was
+never applied, and extrapolating its sections (eq. 2) read the offset -28 +- 6 um for a
+truth near -48: a flow step starts a thermal tail that 5 s cannot show, and the
+back-pressure settles over a *length* of track, ~Kb A_f / h sech^2(w / w_sat) (3-10 mm
+here), whatever the speed. At constant flow there is no thermal step (the start tail of
+the line is a slow relative deficit: g1), and the serpentine's 280 mm give the sections
+35-95 mm. On that truth from the virtual printer with a -45 um offset: b0 -46.6 +- 2.2
+um; rendered (flatbed, every phenomenon, Bowden seed 6) and measured: -44.8 +- 2.7 um,
+test-track widths RMS 3.9 um, bias -0.5 um (48 / -48 um uncalibrated before).
 
 Glare: a reference line that faces the light has a specular streak along one flank on
 every station (measure/edges.py). The plain edge pair reads such a bead wide, the edge pair
@@ -34,11 +52,11 @@ flatbed renders the offset came out -25 / -36 um (truth -34) on one print and -3
 offset is their midpoint, with half their difference added to its sd in quadrature: a
 bracket, not a confident number, and the fit's ``scan_bias`` prior widens with it.
 
-Limits: a flow still settling at the end of a section (a time constant tau above
-~SETTLE_S / 4, thermal ooze) biases b0 by ~exp(-SETTLE_S / tau) of the width step: a
-section whose width drifts over its settled part is a warning, and above MAX_TREND_MM
-(or an offset sd above MAX_OFFSET_SD_MM) the calibration is not applied and says so. G-code without a width-reference prime line
-(third-party prints) gets no calibration, and the summary says so.
+Limits: a section whose settling fit puts its limit more than MAX_EXTRAPOLATION_MM beyond
+its last station (called without timing, a section is its median and may change by
+MAX_TREND_MM across it) or an offset sd above MAX_OFFSET_SD_MM is not applied, and
+says so. G-code without a width-reference prime line (third-party prints) gets no
+calibration, and the summary says so.
 """
 from __future__ import annotations
 
@@ -48,8 +66,11 @@ import numpy as np
 
 from patterns.manifest import Manifest, Samples, sample_points
 
-#: Stations count only this long (s) after the commanded width last changed.
-SETTLE_S = 3.0
+#: Stations from this long (s) after the width changed enter the settling fit (below it
+#: the flow's rise is the least exponential: back-pressure's tanh, a clipped outflow).
+FIT_FROM_S = 1.0
+#: Time constants (s) the settling fit tries.
+SETTLE_T_GRID_S = np.geomspace(0.15, 30.0, 80)
 #: Fewest valid stations per section for it to count.
 MIN_STATIONS = 12
 #: The calibration is not applied when a section's width drifts by more than this (mm)
@@ -58,6 +79,9 @@ MAX_TREND_MM = 0.010
 #: (15 um was tried: the light-plate scene's reference, whose sections disagree, was then
 #: applied 2.3 sd off, +29.5 um; not applied, the fit's scan_bias prior of 30 um covers it)
 MAX_OFFSET_SD_MM = 0.010
+#: ... or, with the settling fit (eq. 2), when a section's limit lies more than this (mm)
+#: beyond its last station (its sd carries the fit's uncertainty; this bounds the model's).
+MAX_EXTRAPOLATION_MM = 0.025
 #: The glare streak model is believed on the reference when, on the test tracks, its
 #: glare stations' offset from their glare-free peers is at most this share of the plain
 #: edge pair's (streak_consistency). The bracket's middle read the offset 7 um high on the
@@ -75,6 +99,7 @@ class WidthCalibration:
     offset_sd_mm    its one-sigma uncertainty
     gain            g of eq. (1) (flow x scan scale; reported only)
     gain_sd         its sd
+    gain_drift_per_10s  the gain's linear change over 10 s, when fitted (calibrate)
     sections        per section: commanded width, median apparent width, its sd, stations
     applied         whether the widths were corrected
     glare_bracket_mm  (plain, streak) offsets when the reference was in glare (see above)
@@ -86,6 +111,7 @@ class WidthCalibration:
     offset_sd_mm: float = float("nan")
     gain: float = float("nan")
     gain_sd: float = float("nan")
+    gain_drift_per_10s: float = float("nan")
     sections: list = field(default_factory=list)
     applied: bool = False
     glare_bracket_mm: tuple | None = None
@@ -100,10 +126,9 @@ class WidthCalibration:
         return d
 
 
-def reference_stations(manifest: Manifest, ds_mm: float = 0.25) -> tuple[Samples, np.ndarray] | None:
-    """Stations on the settled part of every width-reference section, and their section index.
-
-    None when the manifest has no width-reference track (or no timeline).
+def reference_stations(manifest: Manifest, ds_mm: float = 0.25):
+    """Stations of every width-reference section from FIT_FROM_S after its width changed,
+    on its straight parts: (Samples, section index, seconds since the change), or None when the manifest has no width-reference track (or no timeline).
     """
     refs = [tr for tr in manifest.tracks if tr.kind == "prime" and tr.params.get("role") == "width_reference"]
     if not refs or manifest.timeline is None:
@@ -111,23 +136,33 @@ def reference_stations(manifest: Manifest, ds_mm: float = 0.25) -> tuple[Samples
     smp = sample_points(manifest, ds_mm=ds_mm, kinds=("prime",))
     keep = np.zeros(len(smp), bool)
     section = np.full(len(smp), -1)
+    since = np.full(len(smp), np.nan)
     k = 0
     for tr in refs:
         on = smp.track == tr.id
+        # a serpentine reference: its turns are not measured (a bead bent at a 1.25 mm
+        # radius has no straight edge pair)
+        straight = np.ones(len(smp), bool)
+        if tr.params.get("straight_mm"):
+            straight = np.zeros(len(smp), bool)
+            for a, b in tr.params["straight_mm"]:
+                straight |= (smp.s_mm >= a + 1.0) & (smp.s_mm <= b - 1.0)
         for s0, s1, _w in tr.params.get("sections_mm", []):
-            sel = on & (smp.s_mm >= s0 + 0.5) & (smp.s_mm <= s1 - 1.0)
+            in_sec = on & (smp.s_mm >= s0) & (smp.s_mm <= s1)
+            sel = in_sec & straight & (smp.s_mm >= s0 + 0.5) & (smp.s_mm <= s1 - 1.0)
             if not sel.any():
                 k += 1
                 continue
-            t_start = np.nanmin(smp.t_s[on & (smp.s_mm >= s0) & (smp.s_mm <= s1)])
-            sel &= smp.t_s - t_start >= SETTLE_S
+            dt = smp.t_s - np.nanmin(smp.t_s[in_sec])
+            sel &= dt >= FIT_FROM_S
             keep |= sel
             section[sel] = k
+            since[sel] = dt[sel]
             k += 1
     if not keep.any():
         return None
     sub = Samples(**{f: getattr(smp, f)[keep] for f in Samples.__dataclass_fields__})
-    return sub, section[keep]
+    return sub, section[keep], since[keep]
 
 
 def streak_consistency(track, nominal_mm, width_mm, plain_width_mm, streak, valid, min_stations: int = 20):
@@ -157,7 +192,7 @@ def streak_consistency(track, nominal_mm, width_mm, plain_width_mm, streak, vali
 
 
 def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
-              plain_width_mm=None, streak_check=None) -> WidthCalibration:
+              plain_width_mm=None, streak_check=None, t_s=None, since_s=None) -> WidthCalibration:
     """Fit eq. (1) to measured apparent widths at the reference stations.
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
@@ -170,6 +205,11 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     factor g scales the bead's area, so the physical width is g w + (1 - g) h (1 - pi/4)
     (fit/geometry.py rounded rectangle): that small (1 - g) term is taken out of the
     intercept before it is called b0.
+
+    With the stations' timing (t_s: print time, since_s: seconds since the section's
+    width changed, as :func:`reference_stations` gives them) each section's width is its limit, :func:`settled_width`, not the median
+    of its settled part, and with >= 2 sections of each width the gain may drift linearly
+    in time (the start of a thermal ooze tail is a slow relative flow deficit: seed 000).
     """
     cal = WidthCalibration()
     rows = []
@@ -178,15 +218,23 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
         if m.sum() < MIN_STATIONS:
             continue
         a = width_mm[m]                     # in print order (stations along the track)
-        med = float(np.median(a))
+        row = {"width_commanded_mm": float(np.median(nominal_mm[m])), "stations": int(m.sum())}
+        if since_s is not None:
+            fit = settled_width(np.asarray(since_s)[m], a)
+            if fit is None:
+                continue
+            row.update(apparent_mm=fit["limit_mm"], apparent_sd_mm=fit["sd_mm"], trend_mm=fit["remaining_mm"],
+                       settle_T_s=fit["T_s"], t_mid_s=float(np.median(np.asarray(t_s)[m])) if t_s is not None
+                       else float("nan"))
+            rows.append(row)
+            continue
         x = np.linspace(-0.5, 0.5, len(a))
         slope, icpt = np.polyfit(x, a, 1)   # the change across the section: a flow still settling
         mad = float(np.median(np.abs(a - (slope * x + icpt)))) * 1.4826
         n_ind = max(1.0, m.sum() / STATIONS_PER_INDEPENDENT)
         sd = max(mad * 1.2533 / np.sqrt(n_ind), 0.5e-3)       # sd of a median, with a 0.5 um floor
-        trend = float(slope)
-        rows.append({"width_commanded_mm": float(np.median(nominal_mm[m])), "apparent_mm": med,
-                     "apparent_sd_mm": sd, "stations": int(m.sum()), "trend_mm": trend})
+        row.update(apparent_mm=float(np.median(a)), apparent_sd_mm=sd, trend_mm=float(slope))
+        rows.append(row)
     cal.sections = rows
     ws = np.array([r["width_commanded_mm"] for r in rows])
     if len(rows) < 2 or np.ptp(ws) < 0.1:
@@ -202,19 +250,28 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                         "widths (the prime line of `calib pattern` G-code); widths are apparent widths")
         return cal
     A = np.column_stack([ws, np.ones(len(ws))])
+    t_mid = np.array([r.get("t_mid_s", np.nan) for r in rows])
+    repeated = all(np.sum(np.abs(ws - w) < 0.05) >= 2 for w in ws)
+    drift = bool(np.all(np.isfinite(t_mid)) and len(rows) >= 4 and repeated)
+    if drift:      # g(t) = g + g1 (t - mean t) / 10 s
+        A = np.column_stack([ws, ws * (t_mid - t_mid.mean()) / 10.0, np.ones(len(ws))])
     wt = 1.0 / np.array([r["apparent_sd_mm"] for r in rows]) ** 2
     y = np.array([r["apparent_mm"] for r in rows])
     cov = np.linalg.inv(A.T @ (A * wt[:, None]))
-    g, b0 = cov @ (A.T @ (wt * y))
-    resid = y - A @ np.array([g, b0])
-    dof = len(rows) - 2
+    coef = cov @ (A.T @ (wt * y))
+    resid = y - A @ coef
+    if drift:
+        cal.gain_drift_per_10s = float(coef[1])
+        coef, cov = coef[[0, 2]], cov[np.ix_([0, 2], [0, 2])]
+    g, b0 = coef
+    dof = len(rows) - A.shape[1]
     if dof > 0:   # scale by the misfit between sections of the same width, never below 1
         cov = cov * max(1.0, float(np.sum(wt * resid ** 2)) / dof)
     b0 = b0 - (1.0 - g) * height_mm * (1.0 - np.pi / 4.0)
     cal.gain, cal.offset_mm = float(g), float(b0)
     cal.gain_sd, cal.offset_sd_mm = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
     if plain_width_mm is not None:
-        plain = calibrate(plain_width_mm, valid, nominal_mm, section, height_mm)
+        plain = calibrate(plain_width_mm, valid, nominal_mm, section, height_mm, t_s=t_s, since_s=since_s)
         # and only with a section to spare (the misfit between sections then scales the sd):
         # on a Bowden render whose first 0.4 mm section was lost to glare, the two left read
         # the streak-modelled offset 7 um off with an sd of 2
@@ -242,9 +299,11 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     unsettled = [r for r in rows if abs(r["trend_mm"]) > max(6 * r["apparent_sd_mm"], 0.004)]
     for r in unsettled:
         cal.warnings.append(f"width reference {r['width_commanded_mm']:.2f} mm still changes by "
-                            f"{r['trend_mm'] * 1000:+.0f} um within its settled part: the flow had not "
-                            "settled (long Bowden, thermal ooze?)")
-    drifting = any(abs(r["trend_mm"]) > MAX_TREND_MM for r in unsettled)
+                            f"{r['trend_mm'] * 1000:+.0f} um " + ("beyond the end of its section (its settling "
+                            f"time constant {r['settle_T_s']:.1f} s)" if "settle_T_s" in r else
+                            "within its settled part") + ": the flow had not settled (long Bowden, thermal ooze?)")
+    drifting = any(abs(r["trend_mm"]) > (MAX_EXTRAPOLATION_MM if "settle_T_s" in r else MAX_TREND_MM)
+                   for r in unsettled)
     if drifting or cal.offset_sd_mm > MAX_OFFSET_SD_MM:
         why = ("the width reference had not settled" if drifting else
                "the width reference's sections disagree")
@@ -261,3 +320,62 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                 f"(+-{cal.offset_sd_mm * 1000:.1f} um) from {sum(r['stations'] for r in rows)} reference "
                 f"stations; widths corrected by {-b0 * 1000:+.1f} um")
     return cal
+
+
+def settled_width(since_s, width_mm, grid_s=SETTLE_T_GRID_S) -> dict | None:
+    """The width a reference section settles to, from its stations after the change:
+
+        a(t) = a_inf + c exp(-t / T)                                            (2)
+
+    t seconds since the width changed; T from ``grid_s`` by least squares (a_inf and c
+    linear at each T), one pass dropping stations beyond 4 MADs (a blob, a string).
+    At constant flow the step is the bead's back-pressure draining through the
+    pressure time constant (patterns/builder.py frame_prime): nearly one exponential.
+    Its sd: the linear sd at the best T (stations STATIONS_PER_INDEPENDENT to an
+    independent one) and half the spread of a_inf over the T whose misfit is within
+    one chi-square unit, in quadrature. ``remaining_mm``: how far the limit lies beyond
+    the fit at the last station (what is extrapolated). None with < MIN_STATIONS.
+    """
+    t = np.asarray(since_s, float)
+    a = np.asarray(width_mm, float)
+    ok = np.isfinite(t) & np.isfinite(a)
+    t, a = t[ok], a[ok]
+    if len(a) < MIN_STATIONS:
+        return None
+
+    # a time constant beyond half the section would extrapolate a straight trend to infinity:
+    # such a section has not settled, and its misfit or remaining change says so
+    grid = np.asarray(grid_s)[np.asarray(grid_s) <= 0.5 * t.max()]
+    grid = grid if len(grid) else np.asarray(grid_s)[:1]
+
+    def solve(keep):
+        best = None
+        sse_t, lim_t = [], []
+        for T in grid:
+            X = np.column_stack([np.ones(keep.sum()), np.exp(-t[keep] / T)])
+            coef, *_ = np.linalg.lstsq(X, a[keep], rcond=None)
+            r = a[keep] - X @ coef
+            sse = float(r @ r)
+            sse_t.append(sse)
+            lim_t.append(coef[0])
+            if best is None or sse < best[0]:
+                best = (sse, T, coef, X)
+        return best, np.array(sse_t), np.array(lim_t)
+
+    keep = np.ones(len(a), bool)
+    (sse, T, coef, X), _, _ = solve(keep)
+    r = a - (coef[0] + coef[1] * np.exp(-t / T))
+    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    keep = np.abs(r) <= 4 * max(mad, 1e-4)
+    if keep.sum() < MIN_STATIONS:
+        keep = np.ones(len(a), bool)
+    (sse, T, coef, X), sse_t, lim_t = solve(keep)
+    n = int(keep.sum())
+    s2 = sse / max(n - 3, 1) * STATIONS_PER_INDEPENDENT
+    cov = np.linalg.inv(X.T @ X) * s2
+    near = (sse_t - sse) / s2 <= 1.0
+    spread = 0.5 * float(np.ptp(lim_t[near])) if near.any() else 0.0
+    sd = max(float(np.hypot(np.sqrt(cov[0, 0]), spread)), 0.5e-3)
+    remaining = float(-coef[1] * np.exp(-t[keep].max() / T))
+    return {"limit_mm": float(coef[0]), "sd_mm": sd, "T_s": float(T), "remaining_mm": remaining,
+            "stations": n}

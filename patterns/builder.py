@@ -25,8 +25,21 @@ from patterns.manifest import Manifest, Track
 from patterns.profile import load_profile
 from patterns.ruler import plan_ruler, ruler_height_mm
 
-#: Duration (s) of each constant-width section of the width-reference prime line.
-REFERENCE_SECTION_S = 5.0
+#: Width-reference prime line (frame_prime): lead-in duration (s), measured part of each
+#: section after it settled (s), settling time in pressure time constants and its floor
+#: (s), and the fastest section (mm/s).
+REFERENCE_LEAD_S = 4.0
+REFERENCE_MEASURE_S = 3.0
+REFERENCE_SETTLE_TAUS = 8.0
+REFERENCE_SETTLE_MIN_S = 3.0
+REFERENCE_MAX_SPEED_MM_S = 25.0
+#: Section widths in nozzle diameters (alternating); the lead-in has the first one's width.
+REFERENCE_WIDTHS_DN = (2.5, 1.0, 2.5, 1.0)
+#: Serpentine: most passes, their largest centre-to-centre spacing (mm), segments per
+#: half-circle turn.
+REFERENCE_PASSES = 4
+REFERENCE_PITCH_MM = 2.5
+REFERENCE_TURN_SEGMENTS = 12
 #: Marker rasters: slow, so a lagging extruder's start transient spans few millimetres.
 FIDUCIAL_SPEED_MM_S = 10.0
 FURNITURE_SPEED_MM_S = 20.0     # fiducials, labels, ruler: slow enough to stick on layer 1
@@ -231,26 +244,92 @@ class PatternBuilder:
             self.label(title, (0.5 * (x0 + x1), y1 - f + 1.0), height_mm=3.5, anchor="center")
 
     def frame_prime(self, frame: Frame) -> int:
-        """Prime line along the top band, between the top markers, printed as the scan's
-        width reference (measure/calibrate.py): three sections of commanded width 1, 2.5
-        and 1 nozzle diameters, each at least REFERENCE_SECTION_S long at a slow speed, so
-        the flow has settled over the last part of each (the apparent-width calibration
-        fits apparent = g w + b0 there; two widths separate the scan's edge offset b0 from
-        a flow/scale factor g)."""
+        """Prime line in the top band, between the top markers, printed as the scan's width
+        reference (measure/calibrate.py): a serpentine of REFERENCE_PASSES straight passes
+        joined by half-circle turns; a lead-in, then sections of commanded width
+        REFERENCE_WIDTHS_DN nozzle diameters, alternating (the calibration fits apparent =
+        g w + b0 to the sections' settled widths; two widths separate the scan's edge
+        offset b0 from a flow/scale factor g, and the alternation lets g drift slowly).
+
+        The whole line runs at one volumetric flow Q (mm^3/s): the width changes by the
+        head's speed, v_k = Q / A(w_k, h), so the extruder never sees a flow step. A flow
+        step settles over the pressure time constant and, with thermal ooze (seed 000),
+        over tens of seconds: on the Adventurer 3 truth (tau 0.8 s, thermal 0.05 over 25 s,
+        back-pressure Kb 1) the sections of the constant-*speed* reference of earlier
+        versions drifted by 60-100 um over their settled part and the calibration could
+        never be applied (README, the Bowden row). At constant flow only the bead's
+        back-pressure changes with the width (Kb w_sat (tanh(w2/w_sat) - tanh(w1/w_sat))
+        mm of filament, seed 001), and it drains over tau + Kb sech^2(w/w_sat) Af / (v h)
+        (the back-pressure's feedback through the bead width): slow lines settle slowly,
+        hence the serpentine, which buys length for speed. The lead-in takes the start
+        transient.
+
+        Each section lasts ``settle_s + REFERENCE_MEASURE_S``; ``settle_s`` (in the track's
+        params with the sections and the straight parts, read by measure/calibrate.py) is
+        REFERENCE_SETTLE_TAUS x the profile's pressure time constant guess, at least
+        REFERENCE_SETTLE_MIN_S.
+        """
+        from fit.geometry import bead_area_mm2
+        from patterns.layout import tau_guess_s
+
         x0, _, x1, y1 = frame.rect_mm
         f = frame.fiducial_mm
-        p0 = np.array([x0 + f + 4.0, y1 - 3.0])
-        p1 = np.array([x1 - f - 4.0, y1 - 3.0])
-        L = float(np.linalg.norm(p1 - p0))
         dn = self.profile.nozzle_diameter_mm
-        widths = [1.0 * dn, 2.5 * dn, 1.0 * dn]
-        v = float(min(15.0, L / len(widths) / REFERENCE_SECTION_S))
-        cuts = np.linspace(0.0, 1.0, len(widths) + 1)
-        pts = p0 + cuts[:, None] * (p1 - p0)
-        sections = [[float(cuts[i] * L), float(cuts[i + 1] * L), float(w)] for i, w in enumerate(widths)]
-        tid = self.begin("prime", p0, params={"role": "width_reference", "sections_mm": sections,
-                                               "speed_mm_s": v})
-        self.extrude(pts, widths, v)
+        w_max = max(REFERENCE_WIDTHS_DN) * dn
+        # passes from y1 - 3 down to above the title (frame_furniture: its baseline at
+        # y1 - f + 1), at most REFERENCE_PITCH_MM apart, beads >= 1 mm apart
+        room = (y1 - 3.0) - (y1 - f + 1.0 + LABEL_HEIGHT_MM + 1.0 + w_max / 2)
+        n_pass = int(min(REFERENCE_PASSES, 1 + max(0.0, room) // (w_max + 1.0)))
+        pitch = min(REFERENCE_PITCH_MM, room / (n_pass - 1)) if n_pass > 1 else REFERENCE_PITCH_MM
+        r = pitch / 2
+        xa, xb = x0 + f + 4.0 + r, x1 - f - 4.0 - r
+        # alternating direction, half-circle turns outside [xa, xb]
+        path, straight = [], []
+        s = 0.0
+        for k in range(n_pass):
+            y = y1 - 3.0 - k * pitch
+            a_, b_ = (xa, xb) if k % 2 == 0 else (xb, xa)
+            if k:
+                yc, side = y + r, (1.0 if k % 2 == 1 else -1.0)
+                xc = a_
+                ang = np.linspace(0.5 * np.pi, -0.5 * np.pi, REFERENCE_TURN_SEGMENTS + 1)[1:]
+                turn = np.column_stack([xc + side * r * np.cos(ang), yc + r * np.sin(ang)])
+                s += np.pi * r
+                path.extend(turn)
+            else:
+                path.append(np.array([a_, y]))
+            straight.append([float(s), float(s + (xb - xa))])
+            path.append(np.array([b_, y]))
+            s += xb - xa
+        pts = np.array(path)
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        s_node = np.concatenate([[0.0], np.cumsum(seg)])
+        L = float(s_node[-1])
+
+        h = self.layer_height_mm
+        widths = [k * dn for k in REFERENCE_WIDTHS_DN]
+        settle = max(REFERENCE_SETTLE_MIN_S, REFERENCE_SETTLE_TAUS * tau_guess_s(self.profile))
+        t_sec = settle + REFERENCE_MEASURE_S
+        durs = [REFERENCE_LEAD_S] + [t_sec] * len(widths)
+        ws = [widths[0]] + widths
+        inv_a = [1.0 / float(bead_area_mm2(w, h)) for w in ws]
+        q = L / sum(d * ia for d, ia in zip(durs, inv_a))
+        q = min(q, REFERENCE_MAX_SPEED_MM_S / max(inv_a))      # no section faster than the cap
+        lengths = np.array([q * d * ia for d, ia in zip(durs, inv_a)])
+        lengths *= L / lengths.sum()        # a capped Q: the line still fills the band (longer sections)
+        cuts = np.concatenate([[0.0], np.cumsum(lengths)])
+        cuts[-1] = L
+        speeds = [q * ia for ia in inv_a]
+        sections = [[float(cuts[i + 1]), float(cuts[i + 2]), float(w)] for i, w in enumerate(widths)]
+        tid = self.begin("prime", pts[0], params={
+            "role": "width_reference", "sections_mm": sections, "straight_mm": straight,
+            "flow_mm3_s": float(q), "settle_s": float(settle),
+            "speed_mm_s": [float(v) for v in speeds[1:]]})
+        # split the path at the section cuts; each piece at its section's width and speed
+        for k in range(len(ws)):
+            inside = (s_node > cuts[k] + 1e-9) & (s_node < cuts[k + 1] - 1e-9)
+            piece = [np.interp(cuts[k + 1], s_node, pts[:, 0]), np.interp(cuts[k + 1], s_node, pts[:, 1])]
+            self.extrude(np.vstack([self.position, pts[inside], piece]), ws[k], speeds[k])
         self.end()
         return tid
 

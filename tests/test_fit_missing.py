@@ -5,7 +5,7 @@ fit (fit/likelihood.py, issue #10 item 5), not dropped samples:
 
 The data: the spiral-step test track alone (as tests/test_fit_cli.py), printed on the
 virtual printer by ``pa+offset`` (direct drive, tau 0.043 s, Kc 0.2 mm). The print starts
-with no pressure, so no plastic flows until the advance reaches Kc: the first ~5 mm of the
+with no pressure, so no plastic flows until the advance reaches Kc: the first ~8 mm of the
 track have no bead, and where the bead starts is set by Kc (delay Kc / ve)."""
 from __future__ import annotations
 
@@ -29,7 +29,9 @@ def vprint():
     prof = load_profile("direct_drive")
     _, man = spiral_step.generate(prof, speeds_mm_s=(20.0,), n_steps=2, step_s=(2.0,),
                                   widths_mm=(0.35, 0.8))
-    man = man.cut_to_test_tracks()
+    # no pad: the extruder starts from rest at the track (a pad would start it from rest
+    # inside the prime line or before the restore that follows its retraction)
+    man = man.cut_to_test_tracks(pad_s=0.0)
     model = build_model("pa+offset", prof)
     truth = print_virtual(man, model, TRUTH).table
     assert truth.valid.all()
@@ -82,7 +84,9 @@ def _theta(problem, sigma_mm, kc_mm=TRUTH["offset.kc_mm"], tau_s=TRUTH["pa.tau_s
 def test_censored_term_is_the_normal_log_cdf(vprint):
     model, _, _ = vprint
     sc = _scan(vprint)
-    assert 15 <= sc.n_missing <= 30              # the ~5 mm before the bead starts
+    # no flow until the advance reaches Kc: a delay Kc / ve = 0.2 / 0.511 = 0.39 s, 7.8 mm
+    # of track at 20 mm/s = 31 stations 0.25 mm apart (+ a few narrower than a pixel)
+    assert 29 <= sc.n_missing <= 36
     assert np.all(sc.table.flag[sc.missing_idx] == "missing")
     pr, pr_off = _problem(model, sc), _problem(model, sc, missing=False)
     assert pr.n_missing == sc.n_missing and pr.n_obs == sc.n_valid + sc.n_missing
