@@ -40,6 +40,12 @@ MIN_TEST_LENGTH_MM = 3.0
 TEXT_TURN_DEG = 150.0
 TEXT_BOX_MM = 6.0
 TEXT_NEAR_MM = 2.0
+#: Ruler and dial ticks: at least TICK_FAMILY straight strokes (turning < TICK_TURN_DEG)
+#: no longer than TICK_MAX_MM, of one length and width (within TICK_TOL_MM).
+TICK_FAMILY = 8
+TICK_MAX_MM = 8.0
+TICK_TURN_DEG = 5.0
+TICK_TOL_MM = 0.05
 
 
 def manifest_from_gcode(text, profile, pattern: dict | None = None, *,
@@ -230,6 +236,8 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
     notes: list[str] = []
     text: list[int] = []
     text_ids = _label_strokes(manifest) if auto_exclude and ids is None else set()
+    tick_ids = _tick_strokes(manifest) if auto_exclude and ids is None else set()
+    ticks: list[int] = []
     prof = manifest.printer
     (x0, x1), (y0, y1) = prof.get("bed_x_mm", (-1e9, 1e9)), prof.get("bed_y_mm", (-1e9, 1e9))
     first = min((t.id for t in manifest.tracks), default=None)
@@ -260,6 +268,10 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
                 t.kind = "other"
                 text.append(t.id)
                 continue
+            if t.id in tick_ids:
+                t.kind = "other"
+                ticks.append(t.id)
+                continue
         if why:
             t.kind = "other"
         elif ids is not None or z_range_mm is not None:
@@ -267,6 +279,9 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
     if text:
         notes.append(f"{len(text)} tracks turn like letters or digits (> {TEXT_TURN_DEG:.0f} deg within "
                      f"{TEXT_BOX_MM:g} mm: labels), not test lines: {_id_ranges(text)}; --tracks to override")
+    if ticks:
+        notes.append(f"{len(ticks)} tracks are ruler or dial ticks (>= {TICK_FAMILY} straight strokes of one "
+                     f"length <= {TICK_MAX_MM:g} mm), not test lines: {_id_ranges(ticks)}; --tracks to override")
     if not manifest.test_tracks():
         notes.append("no test track left: check --tracks / --z-range-mm")
     return notes
@@ -304,6 +319,38 @@ def _label_strokes(manifest: Manifest) -> set[int]:
         text |= new
         grow = new
     return text
+
+
+def _tick_strokes(manifest: Manifest) -> set[int]:
+    """Ids of the test tracks that are ruler or dial ticks: straight strokes (turning by
+    less than TICK_TURN_DEG in all) no longer than TICK_MAX_MM, in a family of at least
+    TICK_FAMILY of one length and width (within TICK_TOL_MM). On the realdata tests these
+    were 24 dial ticks of 3.0 mm (SpStartStopTest2) and 44 + 44 ruler ticks of 3 and 5 mm
+    (StartStopTestPLA1), measured as test tracks; the warm-up strokes beside the spiral
+    test lines (3.9-5.9 mm, each length a few times) are not a family and stay."""
+    cand = []
+    for t in manifest.tracks:
+        if t.kind != "test":
+            continue
+        pts = np.asarray(t.points_mm, dtype=float)
+        d = np.diff(pts, axis=0)
+        d = d[np.hypot(*d.T) > 1e-6]
+        if not len(d):
+            continue
+        length = float(np.hypot(*d.T).sum())
+        if length > TICK_MAX_MM:
+            continue
+        a = np.arctan2(d[:, 1], d[:, 0])
+        if len(a) > 1 and float(np.degrees(np.abs(np.angle(np.exp(1j * np.diff(a)))).sum())) >= TICK_TURN_DEG:
+            continue
+        w = np.asarray(t.width_mm, dtype=float)
+        cand.append((t.id, length, float(np.median(w[1:] if len(w) > 1 else w))))
+    out: set[int] = set()
+    for tid, length, w in cand:
+        family = [c for c in cand if abs(c[1] - length) <= TICK_TOL_MM and abs(c[2] - w) <= TICK_TOL_MM]
+        if len(family) >= TICK_FAMILY:
+            out.add(tid)
+    return out
 
 
 def _id_ranges(ids) -> str:

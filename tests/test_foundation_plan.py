@@ -263,3 +263,37 @@ def test_plan_leaves_printed_labels_out_of_the_test(tmp_path, capsys):
     assert "tracks turn like letters or digits" in capsys.readouterr().err    # (strokes < 3 mm: "other" anyway)
     assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--keep-all"]) == 0
     assert sum(t.kind == "test" for t in Manifest.load(out).tracks) > 3
+
+
+def test_plan_leaves_ruler_and_dial_ticks_out_of_the_test(tmp_path, capsys):
+    """A third-party test with a ruler (9 ticks of 4 mm and 3 of 6 mm, as StartStopTestPLA1
+    has 44 + 44) and a dial (10 radial ticks of 3.5 mm, as SpStartStopTest2 has 24 of 3): the ticks
+    are "other"; the test lines stay, and so do short strokes of varying length (the
+    warm-up strokes beside SpStartStopTest2's lines) and a family too small to be a ruler."""
+    from calib.cli import main
+
+    g = ["G21", "G90", "M83", "G28", "G0 Z0.2 F600"]
+    for y in (50, 60):                                                       # test lines
+        g += [f"G0 X50 Y{y}", f"G1 X100 Y{y} E2.5 F1200"]
+    for k in range(12):                                                      # ruler
+        x = 50 + 5 * k
+        g += [f"G0 X{x} Y30", f"G1 X{x} Y{34 if k % 5 else 36} E0.2 F1200"]
+    for k in range(10):                                                      # dial
+        a = 2 * np.pi * k / 10
+        p, q = (150 + 20 * np.cos(a), 100 + 20 * np.sin(a)), (150 + 23.5 * np.cos(a), 100 + 23.5 * np.sin(a))
+        g += [f"G0 X{p[0]:.3f} Y{p[1]:.3f}", f"G1 X{q[0]:.3f} Y{q[1]:.3f} E0.175 F1200"]
+    for k, length in enumerate((3.9, 4.3, 4.7, 5.1, 5.5, 5.9)):            # warm-up strokes
+        g += [f"G0 X{60 + 10 * k} Y80", f"G1 X{60 + 10 * k + length:.2f} Y80 E{0.05 * length:.3f} F300"]
+    src = tmp_path / "ruler.gcode"
+    src.write_text("\n".join(g) + "\n")
+    out = tmp_path / "m.json"
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    tracks = Manifest.load(out).tracks
+    test = [t.id for t in tracks if t.kind == "test"]
+    # 0, 1 the lines; 2-13 the ruler (two of its 6 mm ticks, a family of 3, stay); 14-23
+    # the dial; 24-29 the warm-up strokes
+    assert test == [0, 1, 2, 7, 12] + list(range(24, 30))
+    assert "19 tracks are ruler or dial ticks" in err
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--keep-all"]) == 0
+    assert sum(t.kind == "test" for t in Manifest.load(out).tracks) == 30

@@ -32,8 +32,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "(default 3.0)")
     p.add_argument("--tracks", metavar="IDS",
                    help="the test tracks by id, e.g. 3-8,12 (ids as in the preview); the rest "
-                        "are 'other'. Default: every extruding run, minus the prime line and "
-                        "closed loops (skirts, rings) when they can be recognised")
+                        "are 'other'. Default: every extruding run, minus the prime line, closed "
+                        "loops (skirts, rings), label strokes and ruler/dial ticks when they can be "
+                        "recognised")
     p.add_argument("--tracks-comment", metavar="REGEX",
                    help="the test tracks are those whose G-code comments match REGEX (case-insensitive; the "
                         "comment line before the track and those on its lines, e.g. 'TYPE:External perimeter' "
@@ -41,7 +42,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--z-range-mm", metavar="LO,HI",
                    help="only tracks printed at a z in [LO, HI] mm are test tracks")
     p.add_argument("--keep-all", action="store_true",
-                   help="do not exclude the recognised prime line and closed loops")
+                   help="do not exclude the recognised prime line, closed loops, label strokes and ticks")
     return p
 
 
