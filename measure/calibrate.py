@@ -16,10 +16,11 @@ commanded widths w_k (2.5 and 1 nozzle diameters: the width changes with the hea
 so the extruder never sees a flow step). Each section's apparent width settles after its
 width change as
 
-    a(t) = a_k + c exp(-t / T)                                              (2)
+    a_i = a_k + c_k exp(-t_i / T) + beta (x_i - mean x)                     (2)
 
-(:func:`settled_width`: the bead's back-pressure draining through the pressure time
-constant), and its limit a_k is modelled as
+(:func:`settled_widths`, all sections at once: the bead's back-pressure draining through
+the pressure time constant, and the picture's own trend along the passes), and its limit
+a_k is modelled as
 
     a_k = g(t_k) * w_k + b0,   g(t) = g + g1 (t - mean t) / 10 s                (1)
 
@@ -39,9 +40,11 @@ truth near -48: a flow step starts a thermal tail that 5 s cannot show, and the
 back-pressure settles over a *length* of track, ~Kb A_f / h sech^2(w / w_sat) (3-10 mm
 here), whatever the speed. At constant flow there is no thermal step (the start tail of
 the line is a slow relative deficit: g1), and the serpentine's 280 mm give the sections
-35-95 mm. On that truth from the virtual printer with a -45 um offset: b0 -46.6 +- 2.2
-um; rendered (flatbed, every phenomenon, Bowden seed 6) and measured: -44.8 +- 2.7 um,
-test-track widths RMS 3.9 um, bias -0.5 um (48 / -48 um uncalibrated before).
+35-95 mm. On that truth from the virtual printer with a -45 um offset: b0 -46.7 +- 2.3
+um; rendered (flatbed, every phenomenon, Bowden seed 6) and measured: -46.8 +- 7.2 um,
+test-track widths RMS 4.1 um, bias +1.4 um (48 / -48 um uncalibrated before). Without the
+x term a phone render (seed 6) read -135 um for about -63 (its 0.4 mm sections 75 um
+narrow at one end of the band, 20 at the other); with it -49 +- 12 um, not applied.
 
 Glare: a reference line that faces the light has a specular streak along one flank on
 every station (measure/edges.py). The plain edge pair reads such a bead wide, the edge pair
@@ -69,8 +72,10 @@ from patterns.manifest import Manifest, Samples, sample_points
 #: Stations from this long (s) after the width changed enter the settling fit (below it
 #: the flow's rise is the least exponential: back-pressure's tanh, a clipped outflow).
 FIT_FROM_S = 1.0
-#: Time constants (s) the settling fit tries.
+#: Time constants (s) the settling fit tries, and the longest as a share of the settling
+#: time the pattern designed the section for (its ``settle_s``; patterns/builder.py).
 SETTLE_T_GRID_S = np.geomspace(0.15, 30.0, 80)
+SETTLE_T_MAX_SHARE = 0.6
 #: Fewest valid stations per section for it to count.
 MIN_STATIONS = 12
 #: The calibration is not applied when a section's width drifts by more than this (mm)
@@ -128,7 +133,8 @@ class WidthCalibration:
 
 def reference_stations(manifest: Manifest, ds_mm: float = 0.25):
     """Stations of every width-reference section from FIT_FROM_S after its width changed,
-    on its straight parts: (Samples, section index, seconds since the change), or None when the manifest has no width-reference track (or no timeline).
+    on its straight parts: (Samples, section index, seconds since the change, the settling
+    time the pattern designed the section for (s, NaN when the track does not say)), or None when the manifest has no width-reference track (or no timeline).
     """
     refs = [tr for tr in manifest.tracks if tr.kind == "prime" and tr.params.get("role") == "width_reference"]
     if not refs or manifest.timeline is None:
@@ -137,6 +143,7 @@ def reference_stations(manifest: Manifest, ds_mm: float = 0.25):
     keep = np.zeros(len(smp), bool)
     section = np.full(len(smp), -1)
     since = np.full(len(smp), np.nan)
+    settle = np.full(len(smp), np.nan)
     k = 0
     for tr in refs:
         on = smp.track == tr.id
@@ -158,11 +165,12 @@ def reference_stations(manifest: Manifest, ds_mm: float = 0.25):
             keep |= sel
             section[sel] = k
             since[sel] = dt[sel]
+            settle[sel] = float(tr.params.get("settle_s", np.nan))
             k += 1
     if not keep.any():
         return None
     sub = Samples(**{f: getattr(smp, f)[keep] for f in Samples.__dataclass_fields__})
-    return sub, section[keep], since[keep]
+    return sub, section[keep], since[keep], settle[keep]
 
 
 def streak_consistency(track, nominal_mm, width_mm, plain_width_mm, streak, valid, min_stations: int = 20):
@@ -192,7 +200,8 @@ def streak_consistency(track, nominal_mm, width_mm, plain_width_mm, streak, vali
 
 
 def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
-              plain_width_mm=None, streak_check=None, t_s=None, since_s=None) -> WidthCalibration:
+              plain_width_mm=None, streak_check=None, t_s=None, since_s=None,
+              settle_s=None, x_mm=None) -> WidthCalibration:
     """Fit eq. (1) to measured apparent widths at the reference stations.
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
@@ -207,12 +216,21 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     intercept before it is called b0.
 
     With the stations' timing (t_s: print time, since_s: seconds since the section's
-    width changed, as :func:`reference_stations` gives them) each section's width is its limit, :func:`settled_width`, not the median
-    of its settled part, and with >= 2 sections of each width the gain may drift linearly
+    width changed, settle_s: the section's designed settling time, x_mm: bed x, as
+    :func:`reference_stations` gives them) each section's width is its limit
+    (:func:`settled_widths`), not the median of its settled part, and with >= 2 sections of each width the gain may drift linearly
     in time (the start of a thermal ooze tail is a slow relative flow deficit: seed 000).
     """
     cal = WidthCalibration()
     rows = []
+    joint = {}
+    if since_s is not None:
+        use = valid & np.isfinite(width_mm) & (width_mm > 0)
+        design_s = np.nanmedian(np.asarray(settle_s, float)[use]) if settle_s is not None and use.any() else np.nan
+        joint = settled_widths(np.asarray(since_s)[use], width_mm[use], section[use],
+                               width_class=np.round(nominal_mm[use] / 0.05).astype(int),
+                               x_mm=None if x_mm is None else np.asarray(x_mm)[use],
+                               max_T_s=SETTLE_T_MAX_SHARE * design_s if np.isfinite(design_s) else None)
     for k in np.unique(section):
         m = (section == k) & valid & np.isfinite(width_mm) & (width_mm > 0)
         if m.sum() < MIN_STATIONS:
@@ -220,7 +238,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
         a = width_mm[m]                     # in print order (stations along the track)
         row = {"width_commanded_mm": float(np.median(nominal_mm[m])), "stations": int(m.sum())}
         if since_s is not None:
-            fit = settled_width(np.asarray(since_s)[m], a)
+            fit = joint.get(k)
             if fit is None:
                 continue
             row.update(apparent_mm=fit["limit_mm"], apparent_sd_mm=fit["sd_mm"], trend_mm=fit["remaining_mm"],
@@ -271,7 +289,8 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     cal.gain, cal.offset_mm = float(g), float(b0)
     cal.gain_sd, cal.offset_sd_mm = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
     if plain_width_mm is not None:
-        plain = calibrate(plain_width_mm, valid, nominal_mm, section, height_mm, t_s=t_s, since_s=since_s)
+        plain = calibrate(plain_width_mm, valid, nominal_mm, section, height_mm, t_s=t_s, since_s=since_s,
+                          settle_s=settle_s, x_mm=x_mm)
         # and only with a section to spare (the misfit between sections then scales the sd):
         # on a Bowden render whose first 0.4 mm section was lost to glare, the two left read
         # the streak-modelled offset 7 um off with an sd of 2
@@ -322,60 +341,89 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     return cal
 
 
-def settled_width(since_s, width_mm, grid_s=SETTLE_T_GRID_S) -> dict | None:
-    """The width a reference section settles to, from its stations after the change:
+def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid_s=SETTLE_T_GRID_S,
+                   max_T_s: float | None = None) -> dict:
+    """The widths the reference's sections settle to, fitted jointly:
 
-        a(t) = a_inf + c exp(-t / T)                                            (2)
+        a_i = a_k + c_k exp(-t_i / T_c) + beta_c (x_i - mean x)                 (2)
 
-    t seconds since the width changed; T from ``grid_s`` by least squares (a_inf and c
-    linear at each T), one pass dropping stations beyond 4 MADs (a blob, a string).
-    At constant flow the step is the bead's back-pressure draining through the
-    pressure time constant (patterns/builder.py frame_prime): nearly one exponential.
-    Its sd: the linear sd at the best T (stations STATIONS_PER_INDEPENDENT to an
-    independent one) and half the spread of a_inf over the T whose misfit is within
-    one chi-square unit, in quadrature. ``remaining_mm``: how far the limit lies beyond
-    the fit at the last station (what is extrapolated). None with < MIN_STATIONS.
+    station i of section k and width class c (``width_class``, default one class), t
+    seconds since the section's width changed, x its bed x (mm; the passes run along x).
+    a_k, c_k, beta_c by least squares at each T_c of ``grid_s`` (one T per class, by grid
+    search), one pass dropping stations beyond 4 MADs (a blob, a string). At constant flow
+    the step is the bead's back-pressure draining through the pressure time constant
+    (patterns/builder.py frame_prime): nearly one exponential. The x term is the picture's:
+    on a phone at 35 deg the 0.4 mm sections of the band read 75 um narrow at one end and
+    20 um at the other (defocus; the 1.0 mm ones flat), and a fit without it took that
+    trend, which the alternating passes reverse, for settling (offset -105 um for -63).
+    The sd of a_k: the linear one at the best T (stations STATIONS_PER_INDEPENDENT to an
+    independent one) and half the spread of a_k over the T whose misfit is within 2.3
+    chi-square units, in quadrature. ``remaining_mm``: how far a_k lies beyond the fit at
+    the section's last station (what is extrapolated). T at most half the stations' span
+    and ``max_T_s``. Returns {k: {"limit_mm", "sd_mm", "T_s", "remaining_mm", "stations"}}
+    for sections with >= MIN_STATIONS stations.
     """
+    import itertools
+
     t = np.asarray(since_s, float)
     a = np.asarray(width_mm, float)
+    sec = np.asarray(section)
+    cls = np.zeros(len(a), int) if width_class is None else np.asarray(width_class)
     ok = np.isfinite(t) & np.isfinite(a)
-    t, a = t[ok], a[ok]
-    if len(a) < MIN_STATIONS:
-        return None
-
-    # a time constant beyond half the section would extrapolate a straight trend to infinity:
-    # such a section has not settled, and its misfit or remaining change says so
-    grid = np.asarray(grid_s)[np.asarray(grid_s) <= 0.5 * t.max()]
+    ks = [k for k in np.unique(sec[ok]) if (ok & (sec == k)).sum() >= MIN_STATIONS]
+    ok &= np.isin(sec, ks)
+    if not ks:
+        return {}
+    t, a, sec, cls = t[ok], a[ok], sec[ok], cls[ok]
+    xx = None if x_mm is None else np.asarray(x_mm, float)[ok]
+    classes = list(np.unique(cls))
+    cap = 0.5 * t.max() if max_T_s is None else min(0.5 * t.max(), max_T_s)
+    grid = np.asarray(grid_s)[np.asarray(grid_s) <= cap]
     grid = grid if len(grid) else np.asarray(grid_s)[:1]
+    ind = np.column_stack([sec == k for k in ks]).astype(float)
+    k_cls = [int(np.median(cls[sec == k])) for k in ks]
+    spatial = []
+    if xx is not None and np.ptp(xx) > 1.0:
+        xc = xx - xx.mean()
+        spatial = [xc * (cls == c) for c in classes if np.ptp(xx[cls == c]) > 1.0]
+
+    def design(Ts):
+        T_of = dict(zip(classes, Ts))
+        e = np.column_stack([ind[:, j] * np.exp(-t / T_of[k_cls[j]]) for j in range(len(ks))])
+        return np.column_stack([ind, e] + spatial)
 
     def solve(keep):
-        best = None
-        sse_t, lim_t = [], []
-        for T in grid:
-            X = np.column_stack([np.ones(keep.sum()), np.exp(-t[keep] / T)])
+        best, table = None, []
+        for Ts in itertools.product(grid, repeat=len(classes)):
+            X = design(Ts)[keep]
             coef, *_ = np.linalg.lstsq(X, a[keep], rcond=None)
             r = a[keep] - X @ coef
             sse = float(r @ r)
-            sse_t.append(sse)
-            lim_t.append(coef[0])
+            table.append((sse, coef[:len(ks)]))
             if best is None or sse < best[0]:
-                best = (sse, T, coef, X)
-        return best, np.array(sse_t), np.array(lim_t)
+                best = (sse, Ts, coef, X)
+        return best, table
 
     keep = np.ones(len(a), bool)
-    (sse, T, coef, X), _, _ = solve(keep)
-    r = a - (coef[0] + coef[1] * np.exp(-t / T))
+    (sse, Ts, coef, X), _ = solve(keep)
+    r = a - design(Ts) @ coef
     mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
     keep = np.abs(r) <= 4 * max(mad, 1e-4)
-    if keep.sum() < MIN_STATIONS:
+    if keep.sum() < MIN_STATIONS * len(ks):
         keep = np.ones(len(a), bool)
-    (sse, T, coef, X), sse_t, lim_t = solve(keep)
-    n = int(keep.sum())
-    s2 = sse / max(n - 3, 1) * STATIONS_PER_INDEPENDENT
-    cov = np.linalg.inv(X.T @ X) * s2
-    near = (sse_t - sse) / s2 <= 1.0
-    spread = 0.5 * float(np.ptp(lim_t[near])) if near.any() else 0.0
-    sd = max(float(np.hypot(np.sqrt(cov[0, 0]), spread)), 0.5e-3)
-    remaining = float(-coef[1] * np.exp(-t[keep].max() / T))
-    return {"limit_mm": float(coef[0]), "sd_mm": sd, "T_s": float(T), "remaining_mm": remaining,
-            "stations": n}
+    (sse, Ts, coef, X), table = solve(keep)
+    n, p = int(keep.sum()), X.shape[1]
+    s2 = sse / max(n - p - len(classes), 1) * STATIONS_PER_INDEPENDENT
+    cov = np.linalg.pinv(X.T @ X) * s2
+    lims = np.array([row[1] for row in table if (row[0] - sse) / s2 <= 2.3])
+    spread = 0.5 * np.ptp(lims, axis=0) if len(lims) else np.zeros(len(ks))
+    T_of = dict(zip(classes, Ts))
+    out = {}
+    for j, k in enumerate(ks):
+        on = sec == k
+        T = float(T_of[k_cls[j]])
+        out[k] = {"limit_mm": float(coef[j]),
+                  "sd_mm": max(float(np.hypot(np.sqrt(cov[j, j]), spread[j])), 0.5e-3),
+                  "T_s": T, "remaining_mm": float(-coef[len(ks) + j] * np.exp(-t[on].max() / T)),
+                  "stations": int((on & keep).sum())}
+    return out

@@ -186,7 +186,7 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
     if ref is None:
         return WidthCalibration(note="no apparent-width calibration: the print has no width-reference prime "
                                      "line (third-party G-code?); widths are apparent widths")
-    smp, section, since = ref
+    smp, section, since, settle = ref
     m = measure_widths(gray, smp, reg, manifest=manifest, color=color, blur_prior_px=blur_prior_px,
                        colour_axis=colour_axis)
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
@@ -201,7 +201,7 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
             check = streak_consistency(t.track, nominal, t.width_mm, tm.plain_width_mm, tm.glare_streak, t.valid)
     return calibrate(m.table.width_mm, ok, smp.width_nominal_mm, section, height_mm=h,
                      plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check,
-                     t_s=smp.t_s, since_s=since)
+                     t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm)
 
 
 def _register(gray, manifest, points) -> Registration:

@@ -84,23 +84,37 @@ def test_a_reference_in_glare_takes_the_streak_model_only_when_the_test_tracks_v
 def test_settled_width_is_the_limit_of_an_exponential_approach():
     """Eq. (2) known answer: a(t) = 0.40 + 0.05 exp(-t / 1.4 s) sampled from 1 to 6 s with
     4 um noise: the limit within 2 sd (sd a few um), T near 1.4 s; the median of the
-    late part (the old rule) reads it high."""
-    from measure.calibrate import settled_width
+    late part (the old rule) reads it high. And a band whose picture reads 0.4 mm beads
+    55 um narrower at one end than the other (a phone's defocus): its passes run both
+    ways, so the x term takes the trend and the limits come out right."""
+    from measure.calibrate import settled_widths
 
     hits, sds = 0, []
     for seed in range(20):
         rng = np.random.default_rng(seed)
         t = np.linspace(1.0, 6.0, 200)
         a = 0.40 + 0.05 * np.exp(-t / 1.4) + rng.normal(0, 0.004, len(t))
-        r = settled_width(t, a)
+        r = settled_widths(t, a, np.zeros(len(t), int))[0]
         hits += abs(r["limit_mm"] - 0.40) <= 2 * r["sd_mm"]
         sds.append(r["sd_mm"])
         assert 0.8 < r["T_s"] < 2.5
         assert r["remaining_mm"] == pytest.approx(0.05 * np.exp(-6.0 / 1.4), abs=0.004)
     assert hits >= 17 and 0.0005 < np.median(sds) < 0.004
     assert np.median(a[t >= 3.0]) - 0.40 > 0.002          # what a settled-part median reads
+    # two 0.4 mm sections on passes run in opposite directions along x, the picture's
+    # apparent width falling 55 um from x = 0 to x = 60 mm, no settling at all
+    rng = np.random.default_rng(2)
+    tt = np.tile(np.linspace(1.0, 6.0, 200), 2)
+    sec = np.repeat([0, 1], 200)
+    x = np.where(sec == 0, 10 * tt, 60 - 10 * tt)
+    a2 = 0.40 - 0.055 * x / 60 + rng.normal(0, 0.004, len(tt))
+    fits = settled_widths(tt, a2, sec, x_mm=x)
+    for k in (0, 1):      # the width at the band's mean x (30 mm): 0.4 - 0.0275
+        assert abs(fits[k]["limit_mm"] - 0.3725) <= max(2 * fits[k]["sd_mm"], 0.002)
+    no_x = settled_widths(tt, a2, sec)
+    assert abs(no_x[0]["limit_mm"] - no_x[1]["limit_mm"]) > 0.01      # without x: two wrong limits
     # a flat section: the limit is its mean, and nothing is extrapolated
-    r = settled_width(t, 0.40 + np.random.default_rng(1).normal(0, 0.004, len(t)))
+    r = settled_widths(t, 0.40 + np.random.default_rng(1).normal(0, 0.004, len(t)), np.zeros(len(t), int))[0]
     assert abs(r["limit_mm"] - 0.40) < 0.002 and abs(r["remaining_mm"]) < 0.003
 
 
@@ -146,11 +160,13 @@ def test_bowden_reference_settles_at_constant_flow_and_calibrates():
     q = np.asarray(tr.flow_mm3_s)[1:]
     assert np.ptp(q) / np.mean(q) < 0.01 and tr.params["flow_mm3_s"] == pytest.approx(np.mean(q), rel=0.01)
     spec, values, _ = load_truth(data_dir() / "truths" / "bowden.toml")
-    smp, sec, since = reference_stations(man)
+    smp, sec, since, settle = reference_stations(man)
     vp = print_virtual(man, build_model(spec), values, samples=smp)
     w = vp.table.width_mm - 0.045 + np.random.default_rng(0).normal(0, 0.003, len(smp))
-    cal = calibrate(w, np.ones(len(w), bool), smp.width_nominal_mm, sec, t_s=smp.t_s, since_s=since)
-    assert cal.applied and abs(cal.offset_mm + 0.045) < 0.003 and cal.offset_sd_mm < 0.005
+    cal = calibrate(w, np.ones(len(w), bool), smp.width_nominal_mm, sec, t_s=smp.t_s, since_s=since,
+                    settle_s=settle, x_mm=smp.x_mm)
+    assert cal.applied and abs(cal.offset_mm + 0.045) < max(2 * cal.offset_sd_mm, 0.003)
+    assert cal.offset_sd_mm < 0.010
 
 
 # -- phenomena ----------------------------------------------------------------------------
