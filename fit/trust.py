@@ -47,15 +47,18 @@ Problems
   different printers explain the scan about equally well (parameters of the bead and the
   picture, fit/nuisance.py NOT_PASTED, do not count).
 
-- ``rides the offset``: the widths are apparent (no width reference calibrated them: the
-  prior sd of ``scan_bias.b0_mm`` is >= ``OFFSET_DOUBT_MM``), so the model, not a
-  reference, placed the width offset, and an offset ``OFFSET_DOUBT_MM`` away would move
-  the exported pressure-advance value outside its 95 % interval (:func:`offset_riders`).
-  Measured on the Bowden Adventurer 3 scene (README): thermal's long tail, b0 and b1 are
-  one direction in the likelihood; the bead's wander placed b0 15 um off (3 posterior sds)
-  and thermal.tau_s read 80 s [56, 114] for a truth of 25 s, "trusted" (an offset 15 um
-  further moves it by 2.8 sds: named). A rider that export does not paste (thermal,
-  back-pressure) is a caution naming it.
+- ``rides the offset``: a value the width offset (``scan_bias.b0_mm``) carries: with the
+  offset anywhere in what the *measurement* knows of it, its prior's +-2 sd (+-
+  ``OFFSET_DOUBT_MM`` when the widths are uncalibrated and the prior is wider), the
+  exported pressure-advance value would leave its 95 % interval (:func:`offset_riders`).
+  The posterior of b0 is narrower than that prior: the model's shape places the offset,
+  and where the model and the bead's wander disagree it places it wrong. Measured on the
+  Bowden Adventurer 3 scene (README): thermal's long tail, b0 and b1 are one direction in
+  the likelihood; uncalibrated, b0 came out 15 um off (3 posterior sds) and
+  thermal.tau_s read 80 s [56, 114] for a truth of 25 s, "trusted" (15 um moves it by 2.8
+  sds: named); calibrated (prior sd 4 um) the fit still pulled b0 8 um from the reference
+  and read tau_s 55 s [37, 82] (8 um moves it by 2.5 sds: named). A rider that export
+  does not paste (thermal, back-pressure) is a caution naming it.
 
 Cautions
 - PSIS-LOO Pareto k > 0.7 on more than 1 % of the samples (Vehtari et al. 2017): a few
@@ -78,10 +81,11 @@ PARETO_K_SHARE = 0.01
 #: How far (mm) the width offset that the model infers from uncalibrated widths can be
 #: off: on the Bowden Adventurer 3 scene (README, widths from the constant-speed reference
 #: that never settled) scan_bias.b0 read -30 and -31 um on seeds 6 and 2 for a true -45
-#: (posterior sds 5 um: 3 sds off), -34 um at the MAP of session 17.
+#: (posterior sds 5 um: 3 sds off), -34 um at the MAP of session 17. With a calibrated
+#: prior the doubt is 2 prior sds, when that is less.
 OFFSET_DOUBT_MM = 0.015
-#: A value "rides the offset" when an offset error of OFFSET_DOUBT_MM moves it by more
-#: than this many posterior sds (outside its 95 % interval).
+#: A value "rides the offset" when an offset error of the doubt moves it by more than
+#: this many posterior sds (outside its 95 % interval).
 RIDE_Z = 1.96
 #: What `calib export` pastes into the firmware (a rider among these is a problem).
 EXPORTED = ("pa.tau_s", "pave.ve_us")
@@ -193,14 +197,17 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
     riders = offset_riders(doc)
     checks["offset_riders"] = riders
     for r in riders:
-        what = (f"{r['param']} rides the width offset: the widths are uncalibrated, so the model "
-                f"placed the offset ({r['offset']} = {1000 * r['offset_mm']:+.0f} um), and "
-                f"{1000 * OFFSET_DOUBT_MM:.0f} um more or less moves it to {r['low']:.4g} or "
-                f"{r['high']:.4g}, outside its 95 % interval [{r['ci95'][0]:.4g}, {r['ci95'][1]:.4g}]")
+        known = ("the widths are uncalibrated" if r["calibrated"] is False else
+                 f"the width reference knows the offset to +-{1000 * r['doubt_mm'] / 2:.1f} um")
+        what = (f"{r['param']} rides the width offset: {known}, the fit placed it at "
+                f"{1000 * r['offset_mm']:+.0f} um ({r['offset']}), and {1000 * r['doubt_mm']:.0f} um more or "
+                f"less moves it to {r['low']:.4g} or {r['high']:.4g}, outside its 95 % interval "
+                f"[{r['ci95'][0]:.4g}, {r['ci95'][1]:.4g}]")
         if r["param"].split("@")[0] in EXPORTED:
             problems.append(what)
         else:
-            cautions.append(what + "; do not rely on it until the widths are calibrated")
+            cautions.append(what + "; do not rely on it" + (" until the widths are calibrated"
+                                                            if r["calibrated"] is False else ""))
 
     modes = (doc.get("map") or {}).get("modes") or []
     rivals = []
@@ -296,14 +303,15 @@ def residual_structure(problem, theta, n_null: int = 200, seed: int = 0) -> dict
 
 
 def offset_riders(doc: dict, doubt_mm: float = OFFSET_DOUBT_MM, z: float = RIDE_Z) -> list[dict]:
-    """Values that ride an uncalibrated width offset (module docstring, ``rides the offset``).
+    """Values that ride the width offset (module docstring, ``rides the offset``).
 
-    For every ``scan_bias.b0_mm`` (one per scan) whose prior sd is >= ``doubt_mm`` and every
-    pasted parameter (fit.nuisance.pasted), the posterior draws give the value's linear
-    response to the offset, slope = cov(x, b0) / var(b0), x the value (its log for a
-    positive parameter, whose posterior is skewed). The value at b0 -+ ``doubt_mm``
-    is the median moved by slope x doubt; a rider moves by more than ``z`` posterior sds.
-    Returns [{"param", "offset", "offset_mm", "slope_sd", "low", "high", "ci95"}].
+    For every ``scan_bias.b0_mm`` (one per scan) with a prior sd s, the doubt is
+    min(2 s, ``doubt_mm``); for every pasted parameter (fit.nuisance.pasted) the posterior
+    draws give the value's linear response to the offset, slope = cov(x, b0) / var(b0),
+    x the value (its log for a positive parameter, whose posterior is skewed). The value
+    at b0 -+ doubt is the median moved by slope x doubt; a rider moves by more than ``z``
+    posterior sds. Returns [{"param", "offset", "offset_mm", "doubt_mm", "calibrated",
+    "slope_sd", "low", "high", "ci95"}].
     """
     import numpy as np
 
@@ -315,8 +323,9 @@ def offset_riders(doc: dict, doubt_mm: float = OFFSET_DOUBT_MM, z: float = RIDE_
     out = []
     for j, b in enumerate(names):
         sd_prior = (priors.get(b) or {}).get("sd")
-        if b.split("@")[0] != "scan_bias.b0_mm" or sd_prior is None or float(sd_prior) < doubt_mm:
+        if b.split("@")[0] != "scan_bias.b0_mm" or sd_prior is None:
             continue
+        doubt = min(2.0 * float(sd_prior), doubt_mm)
         bj = draws[:, j]
         var_b = float(np.var(bj))
         if not var_b > 0:
@@ -331,13 +340,14 @@ def offset_riders(doc: dict, doubt_mm: float = OFFSET_DOUBT_MM, z: float = RIDE_
             if not sd_x > 0:
                 continue
             slope = float(np.mean((x - x.mean()) * (bj - bj.mean()))) / var_b
-            move = slope * doubt_mm
+            move = slope * doubt
             if abs(move) <= z * sd_x:
                 continue
             mid = float(np.median(x))
             ends = sorted((mid - move, mid + move))
             low, high = (float(np.exp(e)) if positive else float(e) for e in ends)
-            out.append({"param": n, "offset": b, "offset_mm": float(np.median(bj)),
+            out.append({"param": n, "offset": b, "offset_mm": float(np.median(bj)), "doubt_mm": doubt,
+                        "calibrated": bool(2.0 * float(sd_prior) < doubt_mm),
                         "slope_sd": abs(move) / sd_x, "low": low, "high": high,
                         "ci95": [float(v) for v in params[n]["ci95"]]})
     return out

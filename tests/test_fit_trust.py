@@ -237,8 +237,13 @@ def test_a_value_that_rides_an_uncalibrated_offset_is_named():
     assert v.trustworthy and any("thermal.tau_s rides the width offset" in c for c in v.cautions)
     # a weak ride (15 um moves it by ~1.6 sd) is not named
     assert offset_riders(_riding_doc(12.0)) == []
-    # calibrated widths (b0's prior from the width reference, sd 2 um): the posterior holds it
+    # calibrated widths (b0's prior from the width reference, sd 2 um): the doubt is 2 prior
+    # sds, 4 um, which moves it by 0.9 sd; with a prior sd of 5 um, 10 um moves it by 2.3
     assert offset_riders(_riding_doc(beta, b0_prior_sd=0.002)) == []
+    r = offset_riders(_riding_doc(beta, b0_prior_sd=0.005))
+    assert [x["param"] for x in r] == ["thermal.tau_s"] and r[0]["doubt_mm"] == pytest.approx(0.010)
+    assert r[0]["calibrated"] and "the width reference knows the offset to +-5.0 um" in " ".join(
+        assess(_riding_doc(beta, b0_prior_sd=0.005)).cautions)
 
 
 def test_an_exported_value_that_rides_the_offset_is_refused():
