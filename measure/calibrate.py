@@ -19,8 +19,8 @@ width change as
     a_i = a_k + c_k exp(-t_i / T) + beta (x_i - mean x)                     (2)
 
 (:func:`settled_widths`, all sections at once: the bead's back-pressure draining through
-the pressure time constant, and the picture's own trend along the passes), and its limit
-a_k is modelled as
+the pressure time constant, and, where the picture has one, its own trend along the
+passes), and its limit a_k is modelled as
 
     a_k = g(t_k) * w_k + b0,   g(t) = g + g1 (t - mean t) / 10 s                (1)
 
@@ -41,8 +41,9 @@ back-pressure settles over a *length* of track, ~Kb A_f / h sech^2(w / w_sat) (3
 here), whatever the speed. At constant flow there is no thermal step (the start tail of
 the line is a slow relative deficit: g1), and the serpentine's 280 mm give the sections
 35-95 mm. On that truth from the virtual printer with a -45 um offset: b0 -46.7 +- 2.3
-um; rendered (flatbed, every phenomenon, Bowden seed 6) and measured: -46.8 +- 7.2 um,
-test-track widths RMS 4.1 um, bias +1.4 um (48 / -48 um uncalibrated before). Without the
+um; rendered (flatbed, every phenomenon, Bowden seed 6) and measured: -45.5 +- 2.9 um,
+test-track widths RMS 3.9 um, bias +0.1 um (48 / -48 um uncalibrated before; with the x
+term always on -46.8 +- 7.2, and 4 of 6 seeds not applied). Without the
 x term a phone render (seed 6) read -135 um for about -63 (its 0.4 mm sections 75 um
 narrow at one end of the band, 20 at the other); with it -49 +- 12 um, not applied.
 
@@ -356,7 +357,9 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
     on a phone at 35 deg the 0.4 mm sections of the band read 75 um narrow at one end and
     20 um at the other (defocus; the 1.0 mm ones flat), and a fit without it took that
     trend, which the alternating passes reverse, for settling (offset -105 um for -63).
-    The sd of a_k: the linear one at the best T (stations STATIONS_PER_INDEPENDENT to an
+    The x term is kept only when it lowers the misfit by more than its BIC penalty + 10
+    (stations STATIONS_PER_INDEPENDENT to an independent one). The sd of a_k: the linear
+    one at the best T (stations STATIONS_PER_INDEPENDENT to an
     independent one) and half the spread of a_k over the T whose misfit is within 2.3
     chi-square units, in quadrature. ``remaining_mm``: how far a_k lies beyond the fit at
     the section's last station (what is extrapolated). T at most half the stations' span
@@ -387,15 +390,15 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
         xc = xx - xx.mean()
         spatial = [xc * (cls == c) for c in classes if np.ptp(xx[cls == c]) > 1.0]
 
-    def design(Ts):
+    def design(Ts, with_x=True):
         T_of = dict(zip(classes, Ts))
         e = np.column_stack([ind[:, j] * np.exp(-t / T_of[k_cls[j]]) for j in range(len(ks))])
-        return np.column_stack([ind, e] + spatial)
+        return np.column_stack([ind, e] + (spatial if with_x else []))
 
-    def solve(keep):
+    def solve(keep, with_x=True):
         best, table = None, []
         for Ts in itertools.product(grid, repeat=len(classes)):
-            X = design(Ts)[keep]
+            X = design(Ts, with_x)[keep]
             coef, *_ = np.linalg.lstsq(X, a[keep], rcond=None)
             r = a[keep] - X @ coef
             sse = float(r @ r)
@@ -414,6 +417,16 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
     (sse, Ts, coef, X), table = solve(keep)
     n, p = int(keep.sum()), X.shape[1]
     s2 = sse / max(n - p - len(classes), 1) * STATIONS_PER_INDEPENDENT
+    if spatial:
+        # the x term only where the picture has a trend (BIC over independent stations):
+        # where it has none it costs the limits their precision (on the flatbed Bowden
+        # renders the offset's sd rose from 3 to 7-12 um and 4 of 6 were not applied)
+        (sse0, Ts0, coef0, X0), table0 = solve(keep, with_x=False)
+        n_ind = n / STATIONS_PER_INDEPENDENT
+        if (sse0 - sse) / s2 <= len(spatial) * np.log(max(n_ind, 2.0)) + 10.0:
+            sse, Ts, coef, X, table = sse0, Ts0, coef0, X0, table0
+            p = X.shape[1]
+            s2 = sse / max(n - p - len(classes), 1) * STATIONS_PER_INDEPENDENT
     cov = np.linalg.pinv(X.T @ X) * s2
     lims = np.array([row[1] for row in table if (row[0] - sse) / s2 <= 2.3])
     spread = 0.5 * np.ptp(lims, axis=0) if len(lims) else np.zeros(len(ks))
