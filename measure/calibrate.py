@@ -174,26 +174,45 @@ def reference_stations(manifest: Manifest, ds_mm: float = 0.25):
     return sub, section[keep], since[keep], settle[keep]
 
 
-def streak_consistency(track, nominal_mm, width_mm, plain_width_mm, streak, valid, min_stations: int = 20):
+#: Edges (s) of the time-since-the-width-changed cells streak_consistency compares within.
+STREAK_CELL_EDGES_S = (0.0, 0.2, 0.4, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, np.inf)
+
+
+def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak, valid, min_side: int = 3):
     """How the test tracks' glare-streak stations compare with their streak-free peers (mm):
-    (d_streak, d_plain, groups). Per group of one track and one commanded width with
-    >= ``min_stations`` of each kind: median width of the streak stations, fitted with the
-    streak (d_streak) or plain (d_plain), minus the median of the streak-free ones; the
-    station-weighted mean over groups. The streak sits at some headings only, so on a
-    spiral both kinds see the same beads: a streak model that reads the bead right gives
-    d_streak ~ 0 while the plain edge pair reads it wide (600 dpi render: +7..+16 um)."""
-    ok = valid & np.isfinite(width_mm) & (width_mm > 0) & np.isfinite(nominal_mm)
-    key = np.asarray(track, np.int64) * 10000 + np.round(np.nan_to_num(nominal_mm) / 0.01).astype(np.int64)
+    (d_streak, d_plain, cells). Peers: stations of the same track and commanded width at a
+    similar time since that width began (cells of STREAK_CELL_EDGES_S), so that they laid
+    the same physical bead: per cell with >= ``min_side`` of each kind, the median width of
+    the streak stations, fitted with the streak (d_streak) or plain (d_plain), minus the
+    median of the streak-free ones; the means over cells, weighted by the smaller side. The
+    streak sits at some headings only, so on a spiral both kinds see the same beads: a
+    streak model that reads the bead right gives d_streak ~ 0 while the plain edge pair
+    reads it wide (600 dpi render: +7..+16 um). Why the time cells: on a Bowden printer the
+    glare headings fall at their own phases of the flow steps, and the whole track's two
+    sets differed in physical width by -25..+48 um (per track and width) where the streak
+    model read both within 1.5 um of the truth."""
+    track, t_s, streak = np.asarray(track), np.asarray(t_s, float), np.asarray(streak, bool)
+    nominal_mm = np.asarray(nominal_mm, float)
+    ok = valid & np.isfinite(width_mm) & (width_mm > 0) & np.isfinite(nominal_mm) & np.isfinite(t_s)
+    since = np.full(len(t_s), np.nan)
+    for tid in np.unique(track):
+        i = np.flatnonzero(track == tid)
+        i = i[np.argsort(t_s[i], kind="stable")]
+        run = np.r_[True, np.abs(np.diff(np.nan_to_num(nominal_mm[i], nan=-1.0))) > 0.005]
+        start = t_s[i][np.maximum.accumulate(np.where(run, np.arange(len(i)), 0))]
+        since[i] = t_s[i] - start
+    cell = np.digitize(np.nan_to_num(since, nan=-1.0), STREAK_CELL_EDGES_S)
+    key = (track.astype(np.int64) * 10000 + np.round(np.nan_to_num(nominal_mm) / 0.01).astype(np.int64)) * 100 + cell
     ds, dp, n = [], [], []
     for k in np.unique(key[ok]):
         a = ok & (key == k) & streak
         b = ok & (key == k) & ~streak
-        if a.sum() < min_stations or b.sum() < min_stations:
+        if a.sum() < min_side or b.sum() < min_side:
             continue
         ref = np.median(width_mm[b])
         ds.append(np.median(width_mm[a]) - ref)
         dp.append(np.median(plain_width_mm[a]) - ref)
-        n.append(a.sum())
+        n.append(min(a.sum(), b.sum()))
     if not n:
         return float("nan"), float("nan"), 0
     n = np.asarray(n, float)
@@ -208,9 +227,9 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
     height_mm: the reference's layer height; plain_width_mm: the plain edge pair's widths
     when the reference is in glare (module docstring: the offset is then bracketed);
-    streak_check: (d_streak, d_plain, groups) of :func:`streak_consistency` on the test
+    streak_check: (d_streak, d_plain, cells) of :func:`streak_consistency` on the test
     tracks: when the streak model reads their glare stations like their streak-free ones
-    (|d_streak| <= STREAK_TRUSTED x |d_plain|, >= 2 groups, >= 3 reference sections) the
+    (|d_streak| <= STREAK_TRUSTED x |d_plain|, >= 2 cells, >= 3 reference sections) the
     streak-modelled offset is used, with |d_streak| added to its sd, instead of the bracket's middle. A flow
     factor g scales the bead's area, so the physical width is g w + (1 - g) h (1 - pi/4)
     (fit/geometry.py rounded rectangle): that small (1 - g) term is taken out of the
@@ -358,7 +377,11 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
     20 um at the other (defocus; the 1.0 mm ones flat), and a fit without it took that
     trend, which the alternating passes reverse, for settling (offset -105 um for -63).
     The x term is kept only when it lowers the misfit by more than its BIC penalty + 10
-    (stations STATIONS_PER_INDEPENDENT to an independent one). The sd of a_k: the linear
+    (stations STATIONS_PER_INDEPENDENT to an independent one), and so is the settling term
+    (c_k and T_c): a reference that settled before FIT_FROM_S (a direct drive) has none,
+    and fitted to the bead's texture it moved the 0.4 mm sections' limits 3 um off their
+    medians, which the gain levers into the offset x 5/3 (600 dpi render, every phenomenon:
+    offset -42 um for the test tracks' -49). Without it ``T_s`` is 0. The sd of a_k: the linear
     one at the best T (stations STATIONS_PER_INDEPENDENT to an
     independent one) and half the spread of a_k over the T whose misfit is within 2.3
     chi-square units, in quadrature. ``remaining_mm``: how far a_k lies beyond the fit at
@@ -391,13 +414,15 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
         spatial = [xc * (cls == c) for c in classes if np.ptp(xx[cls == c]) > 1.0]
 
     def design(Ts, with_x=True):
+        if Ts is None:                       # no settling term
+            return np.column_stack([ind] + (spatial if with_x else []))
         T_of = dict(zip(classes, Ts))
         e = np.column_stack([ind[:, j] * np.exp(-t / T_of[k_cls[j]]) for j in range(len(ks))])
         return np.column_stack([ind, e] + (spatial if with_x else []))
 
-    def solve(keep, with_x=True):
+    def solve(keep, with_x=True, settle=True):
         best, table = None, []
-        for Ts in itertools.product(grid, repeat=len(classes)):
+        for Ts in (itertools.product(grid, repeat=len(classes)) if settle else [None]):
             X = design(Ts, with_x)[keep]
             coef, *_ = np.linalg.lstsq(X, a[keep], rcond=None)
             r = a[keep] - X @ coef
@@ -417,26 +442,30 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
     (sse, Ts, coef, X), table = solve(keep)
     n, p = int(keep.sum()), X.shape[1]
     s2 = sse / max(n - p - len(classes), 1) * STATIONS_PER_INDEPENDENT
+    n_ind = max(n / STATIONS_PER_INDEPENDENT, 2.0)
+    with_x = bool(spatial)
     if spatial:
         # the x term only where the picture has a trend (BIC over independent stations):
         # where it has none it costs the limits their precision (on the flatbed Bowden
         # renders the offset's sd rose from 3 to 7-12 um and 4 of 6 were not applied)
         (sse0, Ts0, coef0, X0), table0 = solve(keep, with_x=False)
-        n_ind = n / STATIONS_PER_INDEPENDENT
-        if (sse0 - sse) / s2 <= len(spatial) * np.log(max(n_ind, 2.0)) + 10.0:
-            sse, Ts, coef, X, table = sse0, Ts0, coef0, X0, table0
-            p = X.shape[1]
-            s2 = sse / max(n - p - len(classes), 1) * STATIONS_PER_INDEPENDENT
+        if (sse0 - sse) / s2 <= len(spatial) * np.log(n_ind) + 10.0:
+            sse, Ts, coef, X, table, with_x = sse0, Ts0, coef0, X0, table0, False
+            s2 = sse / max(n - X.shape[1] - len(classes), 1) * STATIONS_PER_INDEPENDENT
+    (sse1, _, coef1, X1), _ = solve(keep, with_x=with_x, settle=False)
+    if (sse1 - sse) / s2 <= (len(ks) + len(classes)) * np.log(n_ind) + 10.0:
+        sse, Ts, coef, X, table = sse1, None, coef1, X1, []
+        s2 = sse / max(n - X.shape[1], 1) * STATIONS_PER_INDEPENDENT
     cov = np.linalg.pinv(X.T @ X) * s2
     lims = np.array([row[1] for row in table if (row[0] - sse) / s2 <= 2.3])
     spread = 0.5 * np.ptp(lims, axis=0) if len(lims) else np.zeros(len(ks))
-    T_of = dict(zip(classes, Ts))
+    T_of = dict(zip(classes, Ts)) if Ts is not None else {}
     out = {}
     for j, k in enumerate(ks):
         on = sec == k
-        T = float(T_of[k_cls[j]])
+        T = float(T_of.get(k_cls[j], 0.0))
         out[k] = {"limit_mm": float(coef[j]),
                   "sd_mm": max(float(np.hypot(np.sqrt(cov[j, j]), spread[j])), 0.5e-3),
-                  "T_s": T, "remaining_mm": float(-coef[len(ks) + j] * np.exp(-t[on].max() / T)),
+                  "T_s": T, "remaining_mm": float(-coef[len(ks) + j] * np.exp(-t[on].max() / T)) if T > 0 else 0.0,
                   "stations": int((on & keep).sum())}
     return out

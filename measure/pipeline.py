@@ -198,7 +198,8 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
         nominal = sample_points(manifest).width_nominal_mm
         if len(nominal) == len(tm.table):
             t = tm.table
-            check = streak_consistency(t.track, nominal, t.width_mm, tm.plain_width_mm, tm.glare_streak, t.valid)
+            check = streak_consistency(t.track, t.t_s, nominal, t.width_mm, tm.plain_width_mm,
+                                       tm.glare_streak, t.valid)
     return calibrate(m.table.width_mm, ok, smp.width_nominal_mm, section, height_mm=h,
                      plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check,
                      t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm)
