@@ -93,6 +93,13 @@ MAX_EXTRAPOLATION_MM = 0.025
 #: edge pair's (streak_consistency). The bracket's middle read the offset 7 um high on the
 #: 600 dpi render with every phenomenon (-42 against the test tracks' -49; streak -46).
 STREAK_TRUSTED = 0.5
+#: On a photo at an angle (the image scale varies over the print by more than
+#: measure.register.PERSPECTIVE) the reference is read in one part of the picture and the
+#: test tracks in others, whose apparent widths differ (defocus, foreshortening, blur across
+#: the bead): this sd (mm) is added to the offset's once it is applied. Measured: calibrated
+#: test-track widths of 11 phone renders at 35 deg (bench_e2e seeds, bench_realism) were
+#: off by -9 to +21 um, RMS 9.4 um, where the reference's own sd said 2-6 um.
+PHOTO_OFFSET_SD_MM = 0.010
 #: Profile windows of neighbouring stations overlap: one in this many is independent.
 STATIONS_PER_INDEPENDENT = 4
 
@@ -221,7 +228,7 @@ def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak,
 
 def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
               plain_width_mm=None, streak_check=None, t_s=None, since_s=None,
-              settle_s=None, x_mm=None) -> WidthCalibration:
+              settle_s=None, x_mm=None, photo: bool = False) -> WidthCalibration:
     """Fit eq. (1) to measured apparent widths at the reference stations.
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
@@ -240,6 +247,9 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     :func:`reference_stations` gives them) each section's width is its limit
     (:func:`settled_widths`), not the median of its settled part, and with >= 2 sections of each width the gain may drift linearly
     in time (the start of a thermal ooze tail is a slow relative flow deficit: seed 000).
+
+    ``photo``: the picture is a photo at an angle; an applied offset's sd gets
+    PHOTO_OFFSET_SD_MM in quadrature (whether to apply is decided on the reference's own sd).
     """
     cal = WidthCalibration()
     rows = []
@@ -355,6 +365,12 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
         cal.note = f"apparent-width calibration rejected (gain {g:.2f})"
         return cal
     cal.applied = True
+    if photo:
+        own = cal.offset_sd_mm
+        cal.offset_sd_mm = float(np.hypot(own, PHOTO_OFFSET_SD_MM))
+        cal.warnings.append(f"a photo at an angle: the width reference is read in one part of the picture and the "
+                            f"test tracks in others; its offset's sd {own * 1000:.1f} um becomes "
+                            f"{cal.offset_sd_mm * 1000:.1f} um (a flatbed scan avoids this)")
     cal.note = (f"apparent-width calibration: apparent = {g:.3f} x physical {b0 * 1000:+.1f} um "
                 f"(+-{cal.offset_sd_mm * 1000:.1f} um) from {sum(r['stations'] for r in rows)} reference "
                 f"stations; widths corrected by {-b0 * 1000:+.1f} um")

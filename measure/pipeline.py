@@ -202,7 +202,22 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
                                        tm.glare_streak, t.valid)
     return calibrate(m.table.width_mm, ok, smp.width_nominal_mm, section, height_mm=h,
                      plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check,
-                     t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm)
+                     t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm,
+                     photo=_is_photo(reg, manifest))
+
+
+def _is_photo(reg, manifest) -> bool:
+    """Whether the picture's scale (px/mm) varies over the print by more than
+    measure.register.PERSPECTIVE: a photo at an angle, not a scanner's affine mapping."""
+    from measure.register import PERSPECTIVE
+    from patterns.manifest import sample_points
+
+    smp = sample_points(manifest, ds_mm=5.0, kinds=("test", "prime"))
+    if len(smp) < 2:
+        return False
+    s = np.asarray(reg.px_per_mm(np.column_stack([smp.x_mm, smp.y_mm])), float)
+    s = s[np.isfinite(s) & (s > 0)]
+    return bool(len(s) >= 2 and s.max() / s.min() - 1.0 > PERSPECTIVE)
 
 
 def _register(gray, manifest, points) -> Registration:

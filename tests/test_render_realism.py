@@ -27,6 +27,22 @@ def test_calibration_separates_edge_offset_from_flow(g, b0):
     assert 0 < cal.offset_sd_mm < 0.003
 
 
+def test_a_photo_adds_its_place_doubt_to_an_applied_offset():
+    """On a photo at an angle the reference and the test tracks are read in different parts
+    of the picture: an applied offset keeps its value and gets PHOTO_OFFSET_SD_MM in
+    quadrature, with a warning; whether it is applied still follows the reference's own sd."""
+    from measure.calibrate import PHOTO_OFFSET_SD_MM
+
+    scan = calibrate(*_stations(1.0, -0.035))
+    photo = calibrate(*_stations(1.0, -0.035), photo=True)
+    assert photo.applied and photo.offset_mm == pytest.approx(scan.offset_mm)
+    assert photo.offset_sd_mm == pytest.approx(np.hypot(scan.offset_sd_mm, PHOTO_OFFSET_SD_MM))
+    assert any("photo" in w for w in photo.warnings) and not any("photo" in w for w in scan.warnings)
+    w, v, nom, sec = _stations(1.0, -0.035, widths=(0.4, 1.0, 0.4, 1.0), sd=0.004)
+    w[sec == 1] += 0.03                      # sections that disagree: refused on a photo too
+    assert not calibrate(w, v, nom, sec, photo=True).applied
+
+
 def test_calibration_needs_two_widths_and_a_plausible_gain():
     w, v, nom, sec = _stations(1.0, -0.03, widths=(0.4, 0.4))
     cal = calibrate(w, v, nom, sec)
@@ -360,3 +376,14 @@ def test_markers_are_found_through_textured_pei_on_a_light_plate(printed):
     for i, c in zip(ids, corners):
         true = r.camera.project(np.asarray(next(f for f in man.fiducials if f.id == i).corners_mm))
         assert np.abs(c - true).max() < 0.25 * 23.6       # < 0.25 mm (bleed of translucent edges)
+
+
+def test_a_phone_at_an_angle_is_a_photo_and_a_scanner_is_not():
+    """measure.pipeline._is_photo on the cameras the renders use: a flatbed's scale is the
+    same over the print (affine), a phone's at 25 deg varies by more than PERSPECTIVE."""
+    from measure.pipeline import _is_photo
+    from tests.test_measure_synth import flatbed, phone, scene_manifest
+
+    man = scene_manifest()
+    assert not _is_photo(flatbed(man, dpi=600, rotation_deg=20.0), man)
+    assert _is_photo(phone(man), man)
