@@ -241,3 +241,36 @@ def test_cli_reports_and_ignores_missing_stations(vprint, tmp_path, capsys, monk
             main(["fit", str(w), "--manifest", str(mp), "--model", "auto", "--quiet",
                   "-o", str(tmp_path / "h.json")] + extra)
     assert seen == [n_miss, 0]
+
+
+def test_cli_short_wobble_fits_the_second_wobble(vprint, tmp_path):
+    """`calib fit --short-wobble`: widths that wander over ~0.4 mm and over 15 mm (OU
+    processes of sd 6 um each) besides 2 um of white noise: the MAP has
+    noise.sigma_short_mm near 6 um and a lower BIC than the one-wobble fit, which has no
+    such parameter."""
+    import json
+
+    from calib.cli import main
+
+    _, man, truth = vprint
+    mp = man.save(tmp_path / "a.manifest.json")
+    t = _measured(truth, 1, 0.002, 0.0)
+    rng = np.random.default_rng(5)
+    for tid in np.unique(t.track):
+        i = np.flatnonzero(t.track == tid)
+        i = i[np.argsort(t.s_mm[i])]
+        ds = np.diff(t.s_mm[i], prepend=t.s_mm[i][0] - 1e9)
+        for ell in (0.4, 15.0):          # the short wobble and the long wander, 6 um each
+            phi = np.exp(-ds / ell)
+            z = np.zeros(len(i))
+            for k in range(len(i)):
+                z[k] = (phi[k] * z[k - 1] if k else 0.0) + 0.006 * np.sqrt(1 - phi[k] ** 2) * rng.standard_normal()
+            t.width_mm[i] += z
+    w = t.save(tmp_path / "a.csv")
+    base = ["fit", str(w), "--manifest", str(mp), "--model", "pa+offset", "--map-only", "--quiet"]
+    assert main(base + ["-o", str(tmp_path / "one.json")]) == 0
+    assert main(base + ["--short-wobble", "-o", str(tmp_path / "two.json")]) == 0
+    one, two = (json.loads((tmp_path / n).read_text()) for n in ("one.json", "two.json"))
+    assert "noise.sigma_short_mm" not in one["theta"]
+    assert 0.003 < two["theta"]["noise.sigma_short_mm"] < 0.010
+    assert two["bic"] < one["bic"] - 10

@@ -42,6 +42,11 @@ def add_parser(sub):
     p.add_argument("--constant-wobble", action="store_true",
                    help="the bead's wobble the same size at every width (default: a share "
                         "noise.rel_share of its variance grows with the width; fit/likelihood.py)")
+    p.add_argument("--short-wobble", action="store_true",
+                   help="a second wobble of the bead's width over ~0.4 mm besides the long one "
+                        "(fit/likelihood.py): on the Bowden scenes it lowered BIC by 278-390 and its "
+                        "intervals held tau where the default's missed; not the default (on "
+                        "back-pressure scans it narrowed Kb's intervals below their error)")
     p.add_argument("--ignore-missing", action="store_true",
                    help="drop the stations flagged 'missing' (no bead seen) instead of fitting "
                         "them as beads narrower than the scan can see (default: fit them)")
@@ -76,11 +81,12 @@ def data_pairs(args) -> list[tuple[str, str]]:
 
 def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=None, ar1=True,
             max_steps=20000, max_time_s=None, seed=0, progress=True, map_only=False,
-            chi2_max=None, missing=True, relative=True):
+            chi2_max=None, missing=True, relative=True, short=False):
     """Load, fit and return (FitResult or MapResult, JointProblem). Shared with `calib batch`.
     ``missing``: fit the stations flagged missing as censored data (fit/likelihood.py);
     False drops them (``--ignore-missing``). ``relative``: the wobble's sd has a part in
-    proportion to the width (``--constant-wobble`` turns it off)."""
+    proportion to the width (``--constant-wobble`` turns it off). ``short``: the bead's second,
+    short wobble (``--short-wobble``)."""
     from fit.data import FitData
     from fit.derived import derived_values
     from fit.likelihood import NoiseOptions
@@ -106,7 +112,7 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     if auto is not None:        # priors of effects the search did not choose do not apply
         names = make_problem(model_spec, data, None, None, extra).param_names
         user = {k: v for k, v in user.items() if k in names}
-    noise = NoiseOptions(ar1=ar1, student_nu=student_nu, missing=missing, relative=relative)
+    noise = NoiseOptions(ar1=ar1, student_nu=student_nu, missing=missing, relative=relative, short=short)
     problem = make_problem(model_spec, data, noise, user or None, extra)
     # what `calib measure` said of its widths: scan_bias priors, and a caution (fit/measurement.py)
     states = measurement.scan_states(data)
@@ -240,7 +246,8 @@ def run(args) -> int:
                            student_nu=args.student_t, ar1=not args.no_ar1,
                            max_steps=args.max_steps, max_time_s=args.max_time, seed=args.seed,
                            progress=not args.quiet, map_only=args.map_only, chi2_max=args.chi2_max,
-                           missing=not args.ignore_missing, relative=not args.constant_wobble)
+                           missing=not args.ignore_missing, relative=not args.constant_wobble,
+                           short=args.short_wobble)
     if args.map_only:
         import json
         from calib.fileio import atomic_write_text
