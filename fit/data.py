@@ -174,8 +174,8 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
     if len(table) == 0:
         raise UserError(f"{name}: the widths table is empty; run `calib measure` first")
     samples = samples_for_table(table, manifest, name)
-    valid = table.valid & np.isfinite(table.width_mm) & np.isfinite(table.width_sd_mm) \
-        & (table.width_sd_mm > 0) & np.isfinite(samples.t_s)
+    sd = table.fit_sd_mm()
+    valid = table.valid & np.isfinite(table.width_mm) & np.isfinite(sd) & (sd > 0) & np.isfinite(samples.t_s)
     if table.valid.any() and (table.valid & ~np.isfinite(table.width_mm)).any():
         raise UserError(f"{name}: {int((table.valid & ~np.isfinite(table.width_mm)).sum())} valid "
                         "sample(s) have NaN width; mark them valid=0 or re-measure")
@@ -199,7 +199,7 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
         if c is not None and hasattr(c, "s_light_deg"):
             c.s_light_deg = np.asarray(table.light_angle_deg, dtype=float)
     return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
-                    y_mm=table.width_mm[idx].copy(), sd_mm=table.width_sd_mm[idx].copy(),
+                    y_mm=table.width_mm[idx].copy(), sd_mm=sd[idx].copy(),
                     gap_mm=gap, ctx=ctx, missing_idx=missing_rows(table, samples, ctx))
 
 

@@ -5,7 +5,9 @@ Noise model (per valid sample i, along one track, stations ordered by arc length
     r_i  = y_i - m_i(theta)                       residual (mm)
     r_i  = x_i + z_i + eps_i
     eps_i ~ N(0, width_sd_i^2)                    the measurement's own error at the
-                                                  station (``measure``), independent
+                                                  station, independent (the widths CSV's
+                                                  width_sd_own_mm, else width_sd_mm:
+                                                  WidthTable.fit_sd_mm)
     x_i  = phi_i x_{i-1} + sigma_extra sqrt(1 - phi_i^2) u_i,  phi_i = exp(-(s_i - s_{i-1}) / ell)
     u_i  ~ N(0, 1)                                everything the scan cannot see, correlated
                                                   along the track (bead wobble, filament
@@ -486,7 +488,7 @@ class JointProblem:
         self.missing_w_min_mm: list[np.ndarray] = []
         for sc in scans:
             idx = censored_rows(sc) if noise.missing else np.zeros(0, np.int64)
-            sd = np.asarray(sc.table.width_sd_mm, dtype=float)[idx] if len(idx) else np.zeros(0)
+            sd = np.asarray(sc.table.fit_sd_mm(), dtype=float)[idx] if len(idx) else np.zeros(0)
             sd = np.where(np.isfinite(sd), sd, 0.0)
             self.missing_idx.append(idx)
             self.missing_w_min_mm.append(np.maximum(sd, float(noise.missing_w_min_floor_mm)))

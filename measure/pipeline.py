@@ -129,6 +129,10 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "light_axis_deg": round(float(np.degrees(axis)) % 180.0, 1) if axis is not None else None,
         "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
         "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
+        # the edge fits' sd scaled and floored by the widths' own scatter along the tracks
+        # (measure/widths.py calibrated_sd); the fit's white term takes the own part
+        "station_sd": {"scale": round(meas.sd_scale, 3), "floor_mm": round(meas.sd_floor_mm, 5),
+                       "own_mm_median": (float(np.median(table.width_sd_own_mm[ok])) if ok.any() else None)},
         "blur_plane_px": [float(v) for v in meas.blur_plane_px],
         "measured_on": channel.to_dict(),
         "apparent_width": cal.to_dict(),

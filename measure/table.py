@@ -7,7 +7,9 @@ CSV columns (README "Widths CSV"):
     x_mm, y_mm   bed position of the station (mm)
     t_s          print time of the station, from the manifest's timeline (s)
     width_mm     measured bead width (mm); 0 where the bead is missing
-    width_sd_mm  one-sigma uncertainty of width_mm (mm)
+    width_sd_mm  one-sigma uncertainty of width_mm (mm): the station's whole error, also the
+                 part it shares with its neighbours within ~1 mm (plate grain, JPEG blocks,
+                 the edge model's misfit; measure/widths.py calibrated_sd)
     valid        1 if the sample may be fitted, 0 if not
     flag         empty, or the reason the sample is not valid (crossing, label, blob,
                  missing, glare, edge, fit, neighbour, end, isolated: a valid-looking
@@ -18,6 +20,10 @@ CSV columns (README "Widths CSV"):
     light_angle_deg  optional: angle (deg, 0-90) between the station's flank normal and the
                  axis of the light that makes the scan's glare streaks (measure/glare.py);
                  empty when the scan has no coherent glare
+    width_sd_own_mm  optional: the part of width_sd_mm that is the station's own, independent
+                 of its neighbours' (mm); the fit's white measurement term (fit/likelihood.py),
+                 whose along-track wobble models the shared part. Empty in older tables:
+                 the fit then takes width_sd_mm
 """
 from __future__ import annotations
 
@@ -33,7 +39,7 @@ from calib.fileio import atomic_write_text
 
 COLUMNS = ("track", "s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm", "valid", "flag")
 #: Columns a table may lack (read as NaN).
-OPTIONAL = ("blur_mm", "light_angle_deg")
+OPTIONAL = ("blur_mm", "light_angle_deg", "width_sd_own_mm")
 
 
 @dataclass
@@ -49,9 +55,12 @@ class WidthTable:
     flag: np.ndarray = field(default=None)
     blur_mm: np.ndarray = field(default=None)
     light_angle_deg: np.ndarray = field(default=None)
+    width_sd_own_mm: np.ndarray = field(default=None)
 
     def __post_init__(self):
         n = len(self.track)
+        self.width_sd_own_mm = (np.full(n, np.nan) if self.width_sd_own_mm is None
+                                else np.asarray(self.width_sd_own_mm, dtype=float).reshape(n))
         self.blur_mm = (np.full(n, np.nan) if self.blur_mm is None
                         else np.asarray(self.blur_mm, dtype=float).reshape(n))
         self.light_angle_deg = (np.full(n, np.nan) if self.light_angle_deg is None
@@ -68,6 +77,12 @@ class WidthTable:
     def __len__(self) -> int:
         return len(self.track)
 
+    def fit_sd_mm(self) -> np.ndarray:
+        """The sd (mm) the fit weighs each station by: ``width_sd_own_mm`` where the table has
+        it, else ``width_sd_mm``."""
+        own = self.width_sd_own_mm
+        return np.where(np.isfinite(own) & (own > 0), own, self.width_sd_mm)
+
     def subset(self, mask) -> "WidthTable":
         return WidthTable(**{c: getattr(self, c)[mask] for c in COLUMNS + OPTIONAL})
 
@@ -77,11 +92,12 @@ class WidthTable:
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(COLUMNS + OPTIONAL)
         for i in range(len(self)):
-            b, a = self.blur_mm[i], self.light_angle_deg[i]
+            b, a, o = self.blur_mm[i], self.light_angle_deg[i], self.width_sd_own_mm[i]
             w.writerow([int(self.track[i]), f"{self.s_mm[i]:.4f}", f"{self.x_mm[i]:.4f}",
                         f"{self.y_mm[i]:.4f}", f"{self.t_s[i]:.5f}", f"{self.width_mm[i]:.5f}",
                         f"{self.width_sd_mm[i]:.5f}", int(self.valid[i]), self.flag[i] or "",
-                        f"{b:.5f}" if np.isfinite(b) else "", f"{a:.1f}" if np.isfinite(a) else ""])
+                        f"{b:.5f}" if np.isfinite(b) else "", f"{a:.1f}" if np.isfinite(a) else "",
+                        f"{o:.5f}" if np.isfinite(o) else ""])
         return buf.getvalue()
 
     def save(self, path) -> Path:

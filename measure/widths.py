@@ -13,7 +13,9 @@ w and s separate) and held fixed, which removes the w-s-A degeneracy of narrow b
 Uncertainty: the scaled covariance of the fit (measure.edges) times
 sqrt(1 / min(1, step_px)) because profile samples closer than a pixel are not independent,
 times ``SD_CALIBRATION`` (set on renders so that ~68 % of true errors fall within
-width_sd_mm, bench/bench_measure.py), plus ``SD_FLOOR_PX`` in quadrature (edge model error).
+width_sd_mm, bench/bench_measure.py), plus ``SD_FLOOR_PX`` in quadrature (edge model error);
+then per scan scaled and floored until it explains the scatter of the widths themselves
+about their smooth course (:func:`calibrated_sd`).
 
 Glare: where a specular streak brightens one flank (measure/edges.py :func:`fit_streak`),
 the edge pair is refitted with the streak on either side and the better of the two replaces
@@ -34,7 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, special
+from scipy import ndimage, optimize, special
 from scipy.spatial import cKDTree
 
 from measure import edges
@@ -48,6 +50,12 @@ SD_CALIBRATION = 0.85
 #: errors fell to 1.2 um and 92 % of them lay within a 0.03 px floor's sd; 0.015 puts the
 #: flat, phone and translucent renders at 67-68 %.)
 SD_FLOOR_PX = 0.015
+#: calibrated_sd: second differences over this arc length (mm), in this many bins of the
+#: formal variance, with the robust sd from this quantile of |d| (0.68: a little more of the
+#: tails than the median, still blind to the few steps and blobs of a track)
+SD_LAG_MM = 1.0
+SD_BINS = 5
+SD_QUANTILE = 0.68
 #: Profile step (px) aimed for; the fit is insensitive below ~0.5 px.
 STEP_PX = 0.5
 #: Fewest background samples each side (mm) needed for a trustworthy edge fit.
@@ -128,6 +136,8 @@ class WidthMeasurement:
     nx, ny     unit normal used at each station (bed); window_mm half-length of the profile
     glare_streak    True where the edge pair was fitted with a glare streak on one flank
     plain_width_mm  the plain edge pair's width there (the same as the table elsewhere)
+    sd_scale, sd_floor_mm   how the edge fits' sd was scaled and floored (mm) into
+                    ``width_sd_mm`` by the scan's own scatter (:func:`calibrated_sd`)
     """
 
     table: WidthTable
@@ -140,6 +150,8 @@ class WidthMeasurement:
     blur_plane_px: tuple
     glare_streak: np.ndarray | None = None
     plain_width_mm: np.ndarray | None = None
+    sd_scale: float = 1.0
+    sd_floor_mm: float = 0.0
 
 
 def widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
@@ -282,15 +294,23 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     sd[is_missing] = 1.0 / ppm_n[is_missing]    # a bead narrower than ~1 px would not be seen
     c[is_missing] = 0.0
     valid = flag == ""
-    sd = sd * _scatter_factor(smp.track, w, sd, valid)
+    # two sds (measure/table.py): the whole error, and the part each station has on its
+    # own, which the fit's white term takes (its wobble takes what neighbours share). One
+    # factor on the own part overstates the error of the noisiest stations (0.5 x on
+    # bench_realism's all-phenomena scenes): the own part is no larger than the whole.
+    sd_own = sd * _scatter_factor(smp.track, w, sd, valid)
+    sd, sd_scale, sd_floor = calibrated_sd(smp.track, smp.s_mm, w, sd, valid)
+    sd_own = np.minimum(sd_own, sd)
+    sd_own = np.where(np.isfinite(sd_own), sd_own, np.nan)
     w = np.where(np.isfinite(w), w, np.nan)
     sd = np.where(np.isfinite(sd), sd, np.nan)
     table = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
-                       width_mm=w, width_sd_mm=sd, valid=valid, flag=flag)
+                       width_mm=w, width_sd_mm=sd, valid=valid, flag=flag, width_sd_own_mm=sd_own)
     return WidthMeasurement(table=table, centre_mm=c, blur_mm=fit.params[:, 5], amplitude=fit.amplitude,
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else (), glare_streak=streak,
-                            plain_width_mm=np.where(streak & (w > 0), plain_w, w))
+                            plain_width_mm=np.where(streak & (w > 0), plain_w, w),
+                            sd_scale=sd_scale, sd_floor_mm=sd_floor)
 
 
 def isolated(track, s_mm, flag, half_mm: float | None = None, fraction: float | None = None):
@@ -513,7 +533,8 @@ def _at_end(manifest, smp, w_meas, w_ref):
 
 
 def _scatter_factor(track, w, sd, valid) -> float:
-    """Factor >= 1 on the fit sd so that it explains the observed station-to-station scatter.
+    """Factor >= 1 on the fit sd so that it explains the observed station-to-station scatter:
+    the station's own error (``width_sd_own_mm``), what the fit's white term takes.
 
     Second differences d2 = w[i-1] - 2 w[i] + w[i+1] along a track remove the smooth
     (physical) width changes; for independent errors var(d2) = 6 sd^2. The fit sd misses
@@ -528,6 +549,74 @@ def _scatter_factor(track, w, sd, valid) -> float:
     observed = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)
     predicted = np.median(sd[1:-1][ok])
     return float(max(1.0, observed / predicted)) if predicted > 0 else 1.0
+
+
+def calibrated_sd(track, s_mm, w, sd, valid, lag_mm: float = SD_LAG_MM, bins: int = SD_BINS):
+    """Per-station sd (mm) rescaled so that it explains the scatter the scan itself shows:
+    sd' = sqrt((k sd)^2 + f^2), k >= 1, f >= 0 (mm). Returns (sd', k, f).
+
+    Second differences d_i = w(s_i - L) - 2 w(s_i) + w(s_i + L) along a track remove the
+    smooth (physical) width changes; for errors independent over L their variance is
+    v_i = sd(s_i - L)^2 + 4 sd(s_i)^2 + sd(s_i + L)^2 when the sds are right, and
+    k^2 v_i + 6 f^2 under the model. Stations are put in ``bins`` quantile bins of v; in
+    each the robust variance of d (``SD_QUANTILE`` of |d|, steps and blobs do not count)
+    gives one equation, and k^2 - 1 and f^2 come from non-negative least squares: a scale
+    where the errors grow with the formal sd, a floor where they do not. Never below the
+    edge fit's own sd (k, f = 1, 0 when the scatter is smaller or there are < 30 stations a bin).
+
+    Why a floor and a lag of L = ``SD_LAG_MM`` (1 mm), not one factor on adjacent stations:
+    on 600 dpi renders with every phenomenon (bench_realism) the errors are 3.4-7 um
+    whatever the formal sd (2-14 um) and correlated between neighbours (0.29-0.5 at
+    0.25 mm): one factor from adjacent stations (1.7) left the smallest-sd fifth's errors at
+    1.6 x their sd and the largest at 0.5 x; this gives 1.2 and 0.8 (light-plate JPEG: 1.8
+    and 1.2 -> 1.35 and 1.16).
+    """
+    track, s_mm, w, sd = (np.asarray(a) for a in (track, s_mm, w, sd))
+    valid = np.asarray(valid, dtype=bool)
+    i, j, k_ = [], [], []
+    for tid in np.unique(track[valid]):
+        on = np.flatnonzero((track == tid) & valid)
+        if len(on) < 3:
+            continue
+        on = on[np.argsort(s_mm[on], kind="stable")]
+        s = s_mm[on]
+        # the valid stations nearest L before and after (flags leave gaps in the grid)
+        a, b = _nearest(s, s - lag_mm), _nearest(s, s + lag_mm)
+        ok = (np.abs(s[a] - (s - lag_mm)) < 0.25 * lag_mm) & (np.abs(s[b] - (s + lag_mm)) < 0.25 * lag_mm)
+        i.append(on[a[ok]]), j.append(on[ok]), k_.append(on[b[ok]])
+    if not i or sum(len(x) for x in j) < 30 * bins:
+        return sd, 1.0, 0.0
+    i, j, k_ = (np.concatenate(x) for x in (i, j, k_))
+    d = w[i] - 2 * w[j] + w[k_]
+    d = d - np.median(d)
+    v = sd[i] ** 2 + 4 * sd[j] ** 2 + sd[k_] ** 2
+    good = np.isfinite(d) & np.isfinite(v)
+    d, v = d[good], v[good]
+    if len(d) < 30 * bins:
+        return sd, 1.0, 0.0
+    c = 1.0 / special.ndtri(0.5 + SD_QUANTILE / 2)
+    edges_v = np.quantile(v, np.linspace(0.0, 1.0, bins + 1))
+    keep = np.ones(len(d), bool)
+    for _ in range(2):
+        A, y = [], []
+        for b0, b1 in zip(edges_v[:-1], edges_v[1:]):
+            m = (v >= b0) & (v <= b1) & keep
+            vm = np.mean(v[m])      # rows in units of their own variance: each bin counts alike
+            A.append([1.0, 6.0 / vm])
+            y.append((c * np.quantile(np.abs(d[m]), SD_QUANTILE)) ** 2 / vm - 1.0)
+        (k2m1, f2), _ = optimize.nnls(np.array(A), np.array(y))
+        # second pass without the flow steps and blobs the first one still counted (4 %
+        # of the stations of a track with one step 1 mm either side of it read k 1.02-1.07
+        # for 1.00): beyond 4 sd of the model they are not measurement error
+        keep = np.abs(d) <= 4.0 * np.sqrt((1.0 + k2m1) * v + 6.0 * f2)
+    k, f = float(np.sqrt(1.0 + k2m1)), float(np.sqrt(f2))
+    return np.sqrt((k * sd) ** 2 + f ** 2), k, f
+
+
+def _nearest(s, target):
+    """Index of the element of the sorted ``s`` nearest each ``target``."""
+    idx = np.clip(np.searchsorted(s, target), 1, len(s) - 1)
+    return np.where(np.abs(s[idx - 1] - target) <= np.abs(s[idx] - target), idx - 1, idx)
 
 
 # -- helpers -----------------------------------------------------------------------------
