@@ -72,11 +72,13 @@ sigma_short 2.9 um (the render's 3), ln L +300. But on the *measured* widths of 
 renders it removed only a third of the tau bias and none of Kb's (seeds 0-3: tau 0.0397
 against 0.0382 with one wobble, Kb 0.218 against 0.221) while the intervals narrowed by
 ~27 %: over seeds 0-10 of bench_e2e 2 tau and 3 Kb intervals missed (one wobble, same
-seeds: 0 and 1). Part of what is left there is the measurement's per-station sd, which is
-not calibrated station by station on realistic pictures (error / sd 1.7 on the fifth of the
-stations with the smallest sd, 0.34 on the largest; README, "Is each station's sd what its
-error is?"); with it recalibrated per scan as well, tau centred but Kb stayed ~5 % high
-with the narrower intervals (seeds 0-11: coverage 10/12 and 7/12, against 12/12 and 11/12).
+seeds: 0 and 1). Part of what is left there is the measurement's per-station sd the fit
+weighs by (the own part, width_sd_own_mm: error / sd 1.7 on the fifth of the stations with
+the smallest sd, 0.34 on the largest; README, "Is each station's sd what its error is?");
+with the sd recalibrated per scan as well, tau centred but Kb stayed ~5 % high with the
+narrower intervals (seeds 0-11: coverage 10/12 and 7/12, against 12/12 and 11/12), and the
+whole calibrated sd (width_sd_mm since 2026-11-26) as the white term with one wobble
+narrowed the intervals ~35 % around the same values (Kb 1 of 4 seeds covered).
 Until the measurement is fixed the wider one-wobble intervals are the honest ones. The short wobble's sd has a uniform prior (it
 may be absent), and the long length starts at 5 x its length so that the two cannot
 trade places (with one 0.6 mm wobble in the data they did, and the sampler wandered).

@@ -568,8 +568,8 @@ def calibrated_sd(track, s_mm, w, sd, valid, lag_mm: float = SD_LAG_MM, bins: in
     on 600 dpi renders with every phenomenon (bench_realism) the errors are 3.4-7 um
     whatever the formal sd (2-14 um) and correlated between neighbours (0.29-0.5 at
     0.25 mm): one factor from adjacent stations (1.7) left the smallest-sd fifth's errors at
-    1.6 x their sd and the largest at 0.5 x; this gives 1.2 and 0.8 (light-plate JPEG: 1.8
-    and 1.2 -> 1.35 and 1.16).
+    1.6 x their sd and the largest at 0.5 x; this gives 0.94 and 0.75 (k 1.1, f 3.4 um;
+    Bowden 0.89 and 0.78; light-plate JPEG 1.80 / 1.18 -> 1.33 / 1.19 with k 3.0, f 8.5 um).
     """
     track, s_mm, w, sd = (np.asarray(a) for a in (track, s_mm, w, sd))
     valid = np.asarray(valid, dtype=bool)
