@@ -29,6 +29,12 @@ MIN_VALID_FRACTION = 0.2
 MIN_PX_PER_MM = 10.0
 #: The width reference is "in glare" when more of its valid stations than this carry a streak.
 GLARE_REFERENCE_SHARE = 0.5
+#: A scan whose widths scatter this many times their edge fits' sd, or by this floor (mm),
+#: gets a warning line (measure/widths.py calibrated_sd: 1.1x and 3.4 um on a 600 dpi
+#: flatbed PNG render with every phenomenon, 3.0x and 8.5 um on its light-plate JPEG,
+#: ~2.1x on a 12 MP phone photo at 35 deg)
+NOISY_SD_SCALE = 2.0
+NOISY_SD_FLOOR_MM = 0.005
 
 
 class MeasureRefused(UserError):
@@ -112,6 +118,10 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     warnings = list(reg.warnings) + list(cal.warnings)
     if valid_frac < 0.7:
         warnings.append(f"only {valid_frac:.0%} of the samples are valid; check the QA overlay")
+    if meas.sd_scale >= NOISY_SD_SCALE or meas.sd_floor_mm >= NOISY_SD_FLOOR_MM:
+        warnings.append(f"the widths scatter along the tracks {meas.sd_scale:.1f}x their edge fits' sd plus "
+                        f"{meas.sd_floor_mm * 1000:.1f} um (JPEG blocks, plate grain, glare or focus; width_sd_mm "
+                        "includes it): a lossless flatbed scan (PNG/TIFF) measures tighter")
     flags = Counter(f for f in table.flag if f)
     ok = table.valid
     summary = {

@@ -97,3 +97,24 @@ def test_an_upside_down_scan_is_measured_like_the_right_way_up(scan, capsys):
     tb = WidthTable.load(d / "turned.csv")
     e = (tb.width_mm - r.table.width_mm)[tb.valid]
     assert tb.valid.mean() > 0.9 and np.sqrt(np.mean(e ** 2)) < 0.01
+
+
+def test_a_coarse_jpeg_gets_a_wider_sd_that_still_covers_its_errors(scan, monkeypatch):
+    import measure.pipeline as pipeline
+
+    d, r = scan
+    cv2.imwrite(str(d / "coarse.jpg"), r.image, [cv2.IMWRITE_JPEG_QUALITY, 15])
+    # the warning's plumbing, with its threshold lowered to this render's scatter
+    monkeypatch.setattr(pipeline, "NOISY_SD_SCALE", 1.2)
+    rc = main(["measure", str(d / "coarse.jpg"), "--manifest", str(d / "p.manifest.json"),
+               "-o", str(d / "coarse.csv"), "--summary", str(d / "coarse.json")])
+    assert rc == 0
+    s = json.loads((d / "coarse.json").read_text())
+    tb = WidthTable.load(d / "coarse.csv")
+    ok = tb.valid & (r.table.width_mm > 0)
+    e = tb.width_mm[ok] - r.table.width_mm[ok]
+    e = e - e.mean()
+    # JPEG 15's blocks: measured k 1.5 and f 4.7 um (1.0 and 0 on the PNG), 62 % within
+    assert s["station_sd"]["scale"] > 1.2
+    assert 0.55 <= np.mean(np.abs(e) <= tb.width_sd_mm[ok]) <= 0.85
+    assert any("scatter along the tracks" in w for w in s["warnings"])
