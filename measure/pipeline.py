@@ -30,7 +30,7 @@ MIN_PX_PER_MM = 10.0
 #: The width reference is "in glare" when more of its valid stations than this carry a streak.
 GLARE_REFERENCE_SHARE = 0.5
 #: A scan whose widths scatter this many times their edge fits' sd, or by this floor (mm),
-#: gets a warning line (measure/widths.py calibrated_sd: 1.1x and 3.4 um on a 600 dpi
+#: gets a warning line (measure/widths.py calibrated_sd: 1.05x and 3.3 um on a 600 dpi
 #: flatbed PNG render with every phenomenon, 3.0x and 8.5 um on its light-plate JPEG,
 #: ~2.1x on a 12 MP phone photo at 35 deg)
 NOISY_SD_SCALE = 2.0

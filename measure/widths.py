@@ -568,12 +568,12 @@ def calibrated_sd(track, s_mm, w, sd, valid, lag_mm: float = SD_LAG_MM, bins: in
     on 600 dpi renders with every phenomenon (bench_realism) the errors are 3.4-7 um
     whatever the formal sd (2-14 um) and correlated between neighbours (0.29-0.5 at
     0.25 mm): one factor from adjacent stations (1.7) left the smallest-sd fifth's errors at
-    1.6 x their sd and the largest at 0.5 x; this gives 0.94 and 0.75 (k 1.1, f 3.4 um;
+    1.6 x their sd and the largest at 0.5 x; this gives 0.94 and 0.75 (k 1.05, f 3.3 um;
     Bowden 0.89 and 0.78; light-plate JPEG 1.80 / 1.18 -> 1.33 / 1.19 with k 3.0, f 8.5 um).
     """
     track, s_mm, w, sd = (np.asarray(a) for a in (track, s_mm, w, sd))
     valid = np.asarray(valid, dtype=bool)
-    i, j, k_ = [], [], []
+    triples = []                # (before, station, after) indices
     for tid in np.unique(track[valid]):
         on = np.flatnonzero((track == tid) & valid)
         if len(on) < 3:
@@ -583,10 +583,10 @@ def calibrated_sd(track, s_mm, w, sd, valid, lag_mm: float = SD_LAG_MM, bins: in
         # the valid stations nearest L before and after (flags leave gaps in the grid)
         a, b = _nearest(s, s - lag_mm), _nearest(s, s + lag_mm)
         ok = (np.abs(s[a] - (s - lag_mm)) < 0.25 * lag_mm) & (np.abs(s[b] - (s + lag_mm)) < 0.25 * lag_mm)
-        i.append(on[a[ok]]), j.append(on[ok]), k_.append(on[b[ok]])
-    if not i or sum(len(x) for x in j) < 30 * bins:
+        triples.append(np.column_stack([on[a[ok]], on[ok], on[b[ok]]]))
+    if not triples or sum(len(x) for x in triples) < 30 * bins:
         return sd, 1.0, 0.0
-    i, j, k_ = (np.concatenate(x) for x in (i, j, k_))
+    i, j, k_ = np.concatenate(triples).T
     d = w[i] - 2 * w[j] + w[k_]
     d = d - np.median(d)
     v = sd[i] ** 2 + 4 * sd[j] ** 2 + sd[k_] ** 2
@@ -601,9 +601,13 @@ def calibrated_sd(track, s_mm, w, sd, valid, lag_mm: float = SD_LAG_MM, bins: in
         A, y = [], []
         for b0, b1 in zip(edges_v[:-1], edges_v[1:]):
             m = (v >= b0) & (v <= b1) & keep
+            if m.sum() < 10:
+                continue
             vm = np.mean(v[m])      # rows in units of their own variance: each bin counts alike
             A.append([1.0, 6.0 / vm])
             y.append((c * np.quantile(np.abs(d[m]), SD_QUANTILE)) ** 2 / vm - 1.0)
+        if len(A) < 2:
+            return sd, 1.0, 0.0
         (k2m1, f2), _ = optimize.nnls(np.array(A), np.array(y))
         # second pass without the flow steps and blobs the first one still counted (4 %
         # of the stations of a track with one step 1 mm either side of it read k 1.02-1.07
