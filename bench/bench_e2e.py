@@ -136,6 +136,7 @@ def _one(job):
     from fit.nuisance import nuisance_check, structure_check
     from fit.sampler import fit_map, fit_mcmc, make_problem
     from fit.measurement import prior_overrides
+    from fit.noise_envelope import widen
     from fit.trust import assess, is_structured, residual_structure
     from patterns.profile import load_profile
 
@@ -172,6 +173,8 @@ def _one(job):
             if is_structured(rs):
                 rs["refits"] = structure_check(problem, m, rs["covariate"], r.map.values, r.map.bic, ci95,
                                                seed=seed)
+            # the intervals `calib fit` reports: widened to hold the short-wobble fit too
+            env = widen(pb, r, seed=seed)
             v = assess(r.to_json())
         except Exception as exc:
             out["fits"][m] = {"error": str(exc)}
@@ -181,6 +184,9 @@ def _one(job):
                           "chi2_nu_bead": float(r.map.chi2_nu_bead),
                           # values the verdict names as riding an uncalibrated width offset
                           "flagged": [x["param"] for x in v.checks.get("offset_riders", [])],
+                          "envelope": {"applied": bool(env and env["applied"]),
+                                       "delta_bic": env["bic_default"] - env["bic_short"] if env else None,
+                                       "widened": sorted(env["widened"]) if env else []},
                           **{n: (r.params[n].median, *r.params[n].ci90) for n in values}}
     out["time_s"] = time.perf_counter() - t0
     return out

@@ -428,6 +428,7 @@ class JointProblem:
             if list(m.param_names) != names0:
                 raise ValueError("all scans of a joint fit need the same model parameters")
         self.scans, self.models, self.noise = list(scans), list(models), noise
+        self.prior_overrides = dict(prior_overrides or {})
         joint = len(scans) > 1
         params = {p.name: p for p in models[0].params}
         names: list[str] = []
@@ -497,6 +498,10 @@ class JointProblem:
         self.n_valid = int(sum(sc.n_valid for sc in scans))
         self.n_missing = int(sum(len(i) for i in self.missing_idx))
         self.n_obs = self.n_valid + self.n_missing
+
+    def with_noise(self, noise: NoiseOptions) -> "JointProblem":
+        """The same scans, models and prior overrides under another noise model."""
+        return JointProblem(self.scans, self.models, noise, self.prior_overrides or None)
 
     # -- parameter vector ---------------------------------------------------------
     @property

@@ -47,6 +47,10 @@ def add_parser(sub):
                         "(fit/likelihood.py): on the Bowden scenes it lowered BIC by 278-390 and its "
                         "intervals held tau where the default's missed; not the default (on "
                         "back-pressure scans it narrowed Kb's intervals below their error)")
+    p.add_argument("--no-noise-envelope", action="store_true",
+                   help="skip the second fit with the short wobble (one global-search MAP): by default, "
+                        "when the widths carry a short wobble (BIC >= 10 lower with it), every interval is "
+                        "widened to hold that fit too (fit/noise_envelope.py)")
     p.add_argument("--ignore-missing", action="store_true",
                    help="drop the stations flagged 'missing' (no bead seen) instead of fitting "
                         "them as beads narrower than the scan can see (default: fit them)")
@@ -81,12 +85,14 @@ def data_pairs(args) -> list[tuple[str, str]]:
 
 def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=None, ar1=True,
             max_steps=20000, max_time_s=None, seed=0, progress=True, map_only=False,
-            chi2_max=None, missing=True, relative=True, short=False):
+            chi2_max=None, missing=True, relative=True, short=False, envelope=True):
     """Load, fit and return (FitResult or MapResult, JointProblem). Shared with `calib batch`.
     ``missing``: fit the stations flagged missing as censored data (fit/likelihood.py);
     False drops them (``--ignore-missing``). ``relative``: the wobble's sd has a part in
     proportion to the width (``--constant-wobble`` turns it off). ``short``: the bead's second,
-    short wobble (``--short-wobble``)."""
+    short wobble (``--short-wobble``). ``envelope``: widen the intervals to hold the fit with
+    the short wobble too when the widths carry one (fit/noise_envelope.py;
+    ``--no-noise-envelope`` turns it off)."""
     from fit.data import FitData
     from fit.derived import derived_values
     from fit.likelihood import NoiseOptions
@@ -135,9 +141,11 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     from fit.derived import problem_advance
 
     adv = problem_advance(problem)      # Kalico match for models with a nonlinear term
-    res.derived = derived_values(res.param_names, res.samples, res.profile,
-                                 advance_fn=adv[0] if adv else None,
-                                 v_max_mm_s=adv[1] if adv else None)
+
+    def derive(samples):
+        return derived_values(res.param_names, samples, res.profile, advance_fn=adv[0] if adv else None,
+                              v_max_mm_s=adv[1] if adv else None)
+    res.derived = derive(res.samples)
     from fit.firmware_match import tested_flow_range
 
     # `calib export` warns when a reference print goes beyond the flows the test covered
@@ -158,6 +166,10 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         if is_structured(rs):
             rs["refits"] = structure_check(extended, model_spec, rs["covariate"], res.map.values,
                                            res.map.bic, ci95, seed=seed)
+    if envelope:
+        from fit.noise_envelope import widen
+
+        widen(problem, res, seed=seed, derive=derive)
     res.diagnostics["measurement"] = {"scans": states, "notes": meas_notes,
                                       "scan_bias_priors": cal}
     res.diagnostics["missing_stations"] = missing_info(problem)
@@ -247,7 +259,7 @@ def run(args) -> int:
                            max_steps=args.max_steps, max_time_s=args.max_time, seed=args.seed,
                            progress=not args.quiet, map_only=args.map_only, chi2_max=args.chi2_max,
                            missing=not args.ignore_missing, relative=not args.constant_wobble,
-                           short=args.short_wobble)
+                           short=args.short_wobble, envelope=not args.no_noise_envelope)
     if args.map_only:
         import json
         from calib.fileio import atomic_write_text
@@ -292,6 +304,11 @@ def summary_text(res) -> str:
     for i, m in enumerate(res.map.modes[1:4], start=2):
         phys = ", ".join(f"{n} {v:.4g}" for n, v in m["values"].items() if not n.startswith("noise."))
         lines.append(f"mode {i}: {phys}  (BIC {m['bic'] - res.map.modes[0]['bic']:+.1f} vs the best)")
+    from fit.noise_envelope import envelope_line
+
+    env = envelope_line(res.diagnostics.get("noise_envelope"))
+    if env:
+        lines.append(env)
     fw = res.derived.get("firmware")
     if fw and not res.trust.get("trustworthy", True):
         pa = res.derived["pressure_advance_s"]
