@@ -55,7 +55,7 @@ from fit.likelihood import is_noise
 SHORT_BIC_MIN = 10.0
 #: draws of the short-wobble fit's Laplace approximation
 N_DRAWS = 4000
-_LEVELS = {"ci68": (0.16, 0.84), "ci90": (0.05, 0.95), "ci95": (0.025, 0.975)}
+_LEVELS = ("ci68", "ci90", "ci95")
 
 
 def laplace_draws(problem, map_result, n: int, rng) -> np.ndarray:
@@ -140,11 +140,12 @@ def widen(problem, result, *, seed: int = 0, derive=None) -> dict:
     return info
 
 
-def envelope_line(info: dict | None, names=None) -> str | None:
-    """One line for `calib fit`: which intervals the short-wobble fit widened, or None."""
+def envelope_line(info: dict | None) -> str | None:
+    """One line for `calib fit`: which intervals the short-wobble fit widened (the firmware's
+    own values, pa.*, first; at most three), or None."""
     if not info or not info.get("applied") or not info.get("widened"):
         return None
-    shown = [n for n in info["widened"] if names is None or n in names] or list(info["widened"])
+    shown = sorted(info["widened"], key=lambda n: not n.startswith(("pa.", "pa_ve.")))
     parts = []
     for n in shown[:3]:
         w = info["widened"][n]
