@@ -266,6 +266,13 @@ def run() -> list[Row]:
                                        f"interval, of {len(trusted)} ({expect:.1f} expected; largest |z| {zmax:.2f}; "
                                        f"values named as riding the width offset: {named})",
                                 float(len(far)), "fits", "-", None))
+                # the noise-model hull (fit/noise_envelope.py): how often the short wobble's
+                # fit was decisive, and how often it widened tau's interval
+                env = [f.get("envelope") or {} for f in good]
+                rows.append(Row("e2e", f"truth {spec}, fit {m}: intervals widened by the noise-model hull "
+                                       f"(short wobble >= 10 BIC better on {sum(bool(e.get('applied')) for e in env)}"
+                                       f"/{len(good)}; tau's widened on)",
+                                float(sum("pa.tau_s" in e.get("widened", []) for e in env)), "fits", "-", None))
                 err = [abs(f["pa.tau_s"][0] / values["pa.tau_s"] - 1) for f in good]
                 rows.append(Row("e2e", f"truth {spec}, fit {m}: median |tau error|", 100 * float(np.median(err)),
                                 "%", "-", None))
