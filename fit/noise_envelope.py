@@ -14,9 +14,9 @@ renders with every phenomenon, measured by the pipeline):
   wobble beside it (BIC 280-390 lower, ell 37-43 mm) every interval held tau.
 - On the back-pressure scans (tau 0.043 s: transients of 1-6 mm) it is the other way round:
   the short wobble is also preferred (BIC 107-248 lower), but it lets the long wobble
-  stiffen, and the measurement's own error of 1-2 um in the first 0.15 s after each flow
-  rise (fit/influence.py: that part alone moves Kb +10 % and tau -9 % on seed 1) then
-  reads as signal: Kb's 90 % interval held the truth on 6 of 12 seeds against 10 of 12.
+  stiffen, and the measurement's own error in the first 0.15 s after each flow rise (a
+  few um; its shape there, not its mean: fit/influence.py, its part under 1 mm alone moves
+  Kb +10 % and tau -9 % on seed 1) then reads as signal: Kb's 90 % interval held the truth on 6 of 12 seeds against 10 of 12.
 
 BIC picks the short wobble on both, so choosing by it trades one confident wrong number for
 another. What holds on both is the hull: the default posterior (MCMC) and the short-wobble
