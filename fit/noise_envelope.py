@@ -10,13 +10,15 @@ renders with every phenomenon, measured by the pipeline):
 - On the long-Bowden Adventurer 3 scene (tau 0.8 s: a flow transient runs ~16 mm of
   track) the one wobble's length collapses to 6-8 mm to absorb the short part, slow width
   structure is then scored as nearly independent, and tau's 90 % interval missed 0.80 on 2
-  of 3 seeds (0.758 [0.729, 0.788], 0.852 [0.822, 0.882]), both trusted. With the short
+  of 3 seeds (0.758 [0.729, 0.788], trusted; 0.852 [0.822, 0.882], refused only for a rival
+  mode within 0.7 BIC). With the short
   wobble beside it (BIC 280-390 lower, ell 37-43 mm) every interval held tau.
 - On the back-pressure scans (tau 0.043 s: transients of 1-6 mm) it is the other way round:
   the short wobble is also preferred (BIC 107-248 lower), but it lets the long wobble
   stiffen, and the measurement's own error in the first 0.15 s after each flow rise (a
   few um; its shape there, not its mean: fit/influence.py, its part under 1 mm alone moves
-  Kb +10 % and tau -9 % on seed 1) then reads as signal: Kb's 90 % interval held the truth on 6 of 12 seeds against 10 of 12.
+  Kb +10 % and tau -9 % on seed 1) then reads as signal: Kb's 90 % interval held the
+  truth on 6 of 12 seeds against 10 of 12.
 
 BIC picks the short wobble on both, so choosing by it trades one confident wrong number for
 another. What holds on both is the hull: the default posterior (MCMC) and the short-wobble
