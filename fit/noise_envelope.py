@@ -11,8 +11,8 @@ renders with every phenomenon, measured by the pipeline):
   track) the one wobble's length collapses to 6-8 mm to absorb the short part, slow width
   structure is then scored as nearly independent, and tau's 90 % interval missed 0.80 on 2
   of 3 seeds (0.758 [0.729, 0.788], trusted; 0.852 [0.822, 0.882], refused only for a rival
-  mode within 0.7 BIC). With the short
-  wobble beside it (BIC 280-390 lower, ell 37-43 mm) every interval held tau.
+  mode within 0.7 BIC). With the short wobble beside it (BIC 280-390 lower, ell 37-43 mm)
+  every interval held tau.
 - On the back-pressure scans (tau 0.043 s: transients of 1-6 mm) it is the other way round:
   the short wobble is also preferred (BIC 107-248 lower), but it lets the long wobble
   stiffen, and the measurement's own error in the first 0.15 s after each flow rise (a
