@@ -7,7 +7,8 @@ measurement noise, fit `pa`, diagnose. Scored:
 
 - named: the top candidate is of the effect's family (foreign_printer.FAMILY);
 - where the best candidate leaves chi2_nu > 1.5 (no library form fits), whether the
-  verdict says so and its top covariate is a right one (foreign_printer.RIGHT_COVARIATES).
+  verdict says so and the covariate it names is a right one (foreign_printer.
+  RIGHT_COVARIATES); a verdict that names none (nothing lines up beyond chance) is not.
 
 Targets (issue 11): named >= 80 % where a library family exists; "says so with the right
 covariate" >= 80 % of the cases where no library form fits.
@@ -42,7 +43,7 @@ def one(hidden: str, seed: int) -> dict:
                  n_null=100, seed=seed)
     ok = [x for x in d.candidates if np.isfinite(x.delta_bic)]
     top = ok[0]
-    cov = d.named_covariate or (d.covariates[0].name if d.covariates else "")
+    cov = d.named_covariate        # "" when the verdict names none (nothing beyond chance)
     says_no_fit = ("explains only part" in d.verdict or "No effect in the library" in d.verdict
                    or "No missing effect" in d.verdict)
     r = {"hidden": hidden, "top": top.effect, "named": top.effect in FAMILY[hidden],

@@ -202,3 +202,29 @@ def test_candidates_within_2_of_the_best_are_named_as_a_tie():
     assert d.to_json()["tied"] == ["backlash"]
     d = verdict([("kalico_tanh", 61.7), ("backlash", 59.6)])
     assert d.tied == [] and "Next best: backlash (Delta BIC 59.6)" in d.verdict
+
+
+def test_what_the_best_leaves_is_named_only_beyond_chance():
+    """A covariate is named for the leftover only at p <= LEFTOVER_P: the foreign gear slip
+    left chi2_nu 1.9 after thermal, lined up with last_stop_duration_s at p = 0.22."""
+    from types import SimpleNamespace
+
+    from fit.covariates import CovariateScore
+    from fit.diagnose import LEFTOVER_P, Candidate, Diagnosis, _verdict
+
+    base = SimpleNamespace(rms_mm=0.034, chi2_nu=11.6, n=912, corr_len_mm=50.0, n_eff=14.0, bic=-5487.0)
+
+    def verdict(p):
+        d = Diagnosis(model="pa", base=base, covariates=[], cov=None,
+                      candidates=[Candidate("thermal", "pa+thermal", 67.8, 67.8, 0.0137, 1.88)])
+        d.covariates_after = [CovariateScore("last_stop_duration_s", 0.1, 0.05, 0.055, p)]
+        _verdict(d, "calib fit W --manifest M", "")
+        return d
+
+    d = verdict(0.218)
+    assert d.best == "thermal" and d.named_covariate == ""
+    assert "explains only part" in d.verdict and "no covariate beyond chance" in d.verdict
+    assert "last_stop_duration_s" in d.verdict and "depends on" not in d.verdict
+    d = verdict(LEFTOVER_P / 2)
+    assert d.named_covariate == "last_stop_duration_s"
+    assert "write one that depends on last_stop_duration_s" in d.verdict
