@@ -78,7 +78,9 @@ def run() -> list[Row]:
     nofit = [r for r in res if r["chi2_after"] > NO_FIT_CHI2]
     if nofit:
         share = np.mean([r["says_no_fit"] and r["cov_right"] for r in nofit])
+        unnamed = sum(r["cov"] == "" for r in nofit)
         rows.append(Row("discover (foreign)", f"no library form fits (chi2_nu after > {NO_FIT_CHI2}, "
-                        f"{len(nofit)} cases): says so and names a right covariate",
+                        f"{len(nofit)} cases, {unnamed} naming none: nothing beyond chance): says so and "
+                        "names a right covariate",
                         100 * share, "%", ">= 80", bool(share >= 0.8)))
     return rows
