@@ -2,7 +2,7 @@
 
 The registered track outline (centre line +- commanded width / 2, thin, yellow), the
 measured edges (centre offset +- measured width / 2: green dots where valid, red where
-flagged, magenta where the bead is missing), the marker outlines with their ids (cyan),
+flagged, magenta where the bead is missing, grey where it is too faint to tell), the marker outlines with their ids (cyan),
 and a caption with the residual and the fraction of valid samples. Large pictures are
 downscaled to ``max_side_px`` first so the PNG stays small.
 """
@@ -15,6 +15,8 @@ from calib.fileio import atomic_write_bytes
 from calib.errors import UserError
 
 YELLOW, GREEN, RED, MAGENTA, CYAN = (0, 220, 255), (60, 220, 60), (40, 40, 255), (255, 0, 255), (255, 255, 0)
+GREY = (160, 160, 160)
+FLAG_COLOUR = {"missing": MAGENTA, "faint": GREY}
 
 
 def draw_overlay(color, manifest, registration, measurement, max_side_px: int = 2400) -> np.ndarray:
@@ -49,7 +51,7 @@ def draw_overlay(color, manifest, registration, measurement, max_side_px: int = 
     for side in (-1, 1):
         uv = registration.project(xy + (c + side * w / 2)[:, None] * nrm) * k
         for i in range(len(tb)):
-            col = GREEN if tb.valid[i] else (MAGENTA if tb.flag[i] == "missing" else RED)
+            col = GREEN if tb.valid[i] else FLAG_COLOUR.get(tb.flag[i], RED)
             if np.all(np.isfinite(uv[i])):
                 cv2.circle(out, (int(round(uv[i, 0])), int(round(uv[i, 1]))), r, col, -1)
 
@@ -60,7 +62,7 @@ def draw_overlay(color, manifest, registration, measurement, max_side_px: int = 
         cv2.putText(out, f"id {mid}", (int(ctr[0]) - 20, int(ctr[1]) + 5), cv2.FONT_HERSHEY_SIMPLEX,
                     0.6, CYAN, 2, cv2.LINE_AA)
     caption = (f"residual {registration.residual_mm:.3f} mm  valid {np.mean(tb.valid):.0%}  "
-               f"{registration.method}  green=valid red=flagged magenta=missing yellow=commanded")
+               f"{registration.method}  green=valid red=flagged magenta=missing grey=too faint yellow=commanded")
     cv2.putText(out, caption, (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
     return out
 

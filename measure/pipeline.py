@@ -20,7 +20,7 @@ from measure.imageio import jpeg_chroma_subsampled, load_image
 from measure.placement import Placement, placement, track_speeds
 from measure.register import FiducialsNotFound, Registration, register
 from measure.table import WidthTable
-from measure.widths import WidthMeasurement, measure_widths
+from measure.widths import DETECTABLE_SNR, WidthMeasurement, measure_widths
 
 #: Below this fraction of valid samples the picture is probably not of this pattern.
 MIN_VALID_FRACTION = 0.2
@@ -34,6 +34,8 @@ GLARE_REFERENCE_SHARE = 0.5
 #: flatbed PNG render with every phenomenon, 3.0x and 8.5 um on its light-plate JPEG,
 #: ~2.1x on a 12 MP phone photo at 35 deg)
 NOISY_SD_SCALE = 2.0
+#: Share of ``faint`` stations (measure/widths.py DETECTABLE_SNR) above which a line says so.
+FAINT_WARN_FRACTION = 0.05
 NOISY_SD_FLOOR_MM = 0.005
 
 
@@ -118,6 +120,12 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     warnings = list(reg.warnings) + list(cal.warnings)
     if valid_frac < 0.7:
         warnings.append(f"only {valid_frac:.0%} of the samples are valid; check the QA overlay")
+    faint = float(np.mean(table.flag == "faint")) if len(table) else 0.0
+    if faint >= FAINT_WARN_FRACTION:
+        warnings.append(f"{faint:.0%} of the samples are too faint to tell bead from plate (the bead's "
+                        f"contrast is under {DETECTABLE_SNR:g}x the plate texture's; grey on the QA overlay): "
+                        "neither their widths nor their absence is used; a plain plate, even light or a "
+                        "flatbed scan reads them")
     if meas.sd_scale >= NOISY_SD_SCALE or meas.sd_floor_mm >= NOISY_SD_FLOOR_MM:
         warnings.append(f"the widths scatter along the tracks {meas.sd_scale:.1f}x their edge fits' sd plus "
                         f"{meas.sd_floor_mm * 1000:.1f} um (JPEG blocks, plate grain, glare or focus; width_sd_mm "
