@@ -40,6 +40,10 @@ SCENES = [("flatbed, none (erf beads)", "flatbed", "none", "dark", "opaque", "bo
      "direct"),
     ("phone 35 deg, all, Bowden", "phone", "all", "dark", "opaque", "bowden"),
     ("phone 35 deg, all, direct drive", "phone", "all", "dark", "opaque", "direct"),
+    # a textured plate as a phone sees it (measure/phenomena.py sparkle: the realdata
+    # photos' width scatter); not in "all", so the rows above are without it
+    ("phone 35 deg, all + sparkle (textured plate under a lamp), Bowden", "phone", "all,sparkle", "dark",
+     "opaque", "bowden"),
 ]
 
 

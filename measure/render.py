@@ -704,6 +704,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
                        logos_inside="logos" in realism, logo_rng=prng)
     if "grain" in realism:
         back *= ph.pei_grain(Xc, Yc, seed=int(seed))[..., None]
+    sparkle = ph.pei_sparkle(Xc, Yc, seed=int(seed)) * np.float32(realism.sparkle) if "sparkle" in realism else None
     del Xc, Yc
     bar.update()
     # 4. compose (linear in coverage), light, blur
@@ -712,7 +713,9 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         opacity = 1.0                      # the thickness sets the opacity (Beer-Lambert)
     a = (opacity * alpha)[..., None]
     img = back * (1.0 - a) + col[None, None, :] * (opacity * radiance)[..., None]
-    del back, a
+    if sparkle is not None:                # the lamp mirrored by the plate, where it is seen
+        img += (sparkle[..., None] * (1.0 - a))
+    del back, a, sparkle
     img *= _light_field(W, H, lighting, rng)[..., None]
     if specular is not None:
         img += (realism.glare_dn * specular)[..., None]

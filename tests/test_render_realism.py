@@ -6,7 +6,7 @@ import pytest
 
 from calib.cli import main
 from measure.calibrate import calibrate, reference_stations
-from measure.phenomena import PHENOMENA, Realism, deposit_pieces, irregular_widths, pei_grain
+from measure.phenomena import PHENOMENA, Realism, deposit_pieces, irregular_widths, pei_grain, pei_sparkle
 
 
 # -- calibration: known answers ---------------------------------------------------------
@@ -206,6 +206,11 @@ def test_realism_names():
     assert "profile" in Realism.parse("translucent")          # a property of the cross-section
     with pytest.raises(ValueError, match="unknown phenomenon 'shiny'"):
         Realism.parse("profile,shiny")
+    # sparkle is known by name and kept out of "all" (every other bench figure is without it)
+    assert "sparkle" not in Realism.parse("all") and Realism.parse("all").label == "all"
+    both = Realism.parse("all,sparkle")
+    assert both.enabled == frozenset(PHENOMENA) | {"sparkle"} and both.label == "all,sparkle"
+    assert Realism.parse(both.label) == both
 
 
 def test_pei_grain_is_a_plate_property_of_the_right_scale():
@@ -217,6 +222,19 @@ def test_pei_grain_is_a_plate_property_of_the_right_scale():
     half = 0.01 * (1 + int(np.argmax(np.array(c) < 0.5)))
     assert 0.05 <= half <= 0.25
     np.testing.assert_array_equal(g, pei_grain(x.astype(np.float32), y.astype(np.float32), seed=1))
+
+
+def test_pei_sparkle_is_sparse_bright_specks_of_grain_size():
+    """Specks 0..1 on about half of the plate, the brightest few percent near 1, of
+    0.1-0.3 mm (correlation half-length 0.05-0.15 mm), a property of the plate."""
+    x, y = np.meshgrid(np.arange(0, 20, 0.01), np.arange(0, 5, 0.01))
+    s = pei_sparkle(x.astype(np.float32), y.astype(np.float32), seed=1)
+    assert s.min() >= 0 and s.max() <= 1
+    assert 0.3 < np.mean(s > 0) < 0.7 and np.percentile(s, 99) > 0.5
+    c = [np.corrcoef(s[:, :-k].ravel(), s[:, k:].ravel())[0, 1] for k in range(1, 40)]
+    half = 0.01 * (1 + int(np.argmax(np.array(c) < 0.5)))
+    assert 0.05 <= half <= 0.15
+    np.testing.assert_array_equal(s, pei_sparkle(x.astype(np.float32), y.astype(np.float32), seed=1))
 
 
 @pytest.fixture(scope="module")

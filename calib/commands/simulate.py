@@ -47,7 +47,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--realism", default="default", metavar="LIST",
                    help="what real prints and cameras do that the measurement does not assume: "
                         "'all', 'none', or a comma list of " + ", ".join(_phenomena()) +
-                        " (measure/phenomena.py); default: all for --camera phone, none for flatbed")
+                        " ('all,sparkle': all and a textured plate's specks, which 'all' leaves out; "
+                        "measure/phenomena.py); default: all for --camera phone, none for flatbed")
     p.add_argument("--seed", type=int, default=0, help="random seed for the picture (default 0)")
     p.add_argument("--effects", default=None, help="Python file with user effects named in TRUTH.toml")
     p.add_argument("--plot", action="store_true", help="also write SCAN.widths.png: true vs commanded widths")
@@ -55,8 +56,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _phenomena():
-    from measure.phenomena import PHENOMENA
-    return PHENOMENA
+    from measure.phenomena import EXTRA_PHENOMENA, PHENOMENA
+    return PHENOMENA + EXTRA_PHENOMENA
 
 
 def camera_for(manifest, camera_kind: str, *, dpi: float = 600.0, tilt_deg: float = 25.0, seed: int = 0,
