@@ -771,7 +771,12 @@ def _along_track_median(track, s_mm, values, half_mm):
             continue
         step = float(np.median(np.diff(s_mm[idx]))) or 1.0
         size = max(1, 2 * int(round(half_mm / step)) + 1)
-        out[idx] = ndimage.median_filter(out[idx], size=size, mode="nearest")
+        v = out[idx]
+        fin = np.isfinite(v)
+        if not fin.any():
+            continue
+        # a profile outside the image has no RMS: it must not spread to its neighbours
+        out[idx] = ndimage.median_filter(np.where(fin, v, np.median(v[fin])), size=size, mode="nearest")
     return out
 
 

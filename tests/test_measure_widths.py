@@ -89,6 +89,18 @@ def test_a_bead_lost_in_plate_texture_is_faint_not_missing():
     assert faint[~gone].mean() > 0.05 and faint[inner].any() and not tb.valid[faint].any()
 
 
+def test_the_noise_a_station_is_judged_by_is_its_tracks_local_median():
+    """measure.widths._along_track_median: +-1 mm of the same track (stations every 0.25
+    mm), a spike does not reach its neighbours, a profile without an RMS (outside the
+    image) does not spread, and tracks do not mix."""
+    from measure.widths import _along_track_median
+    tr = np.r_[np.zeros(20, int), np.ones(5, int)]
+    s = np.r_[np.arange(20), np.arange(5)] * 0.25
+    v = np.r_[np.ones(20), np.full(5, 3.0)]
+    v[3], v[10] = np.nan, 100.0
+    np.testing.assert_array_equal(_along_track_median(tr, s, v, 1.0), np.r_[np.ones(20), np.full(5, 3.0)])
+
+
 def test_a_track_that_never_printed_is_missing_on_a_grained_plate_with_logos():
     """Presence the other way (issue #10 item 5): a whole test track the printer never laid
     has plate grain and logos for its own 'typical' amplitude; its stations must still be
