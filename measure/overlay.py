@@ -2,9 +2,10 @@
 
 The registered track outline (centre line +- commanded width / 2, thin, yellow), the
 measured edges (centre offset +- measured width / 2: green dots where valid, red where
-flagged, magenta where the bead is missing, grey where it is too faint to tell), the marker outlines with their ids (cyan),
-and a caption with the residual and the fraction of valid samples. Large pictures are
-downscaled to ``max_side_px`` first so the PNG stays small.
+flagged, magenta where the bead is missing, grey where it is too faint to tell), the
+marker outlines with their ids (cyan), and a caption with the residual and the fraction
+of valid samples. Large pictures are downscaled to ``max_side_px`` first so the PNG stays
+small.
 """
 from __future__ import annotations
 

@@ -34,9 +34,9 @@ GLARE_REFERENCE_SHARE = 0.5
 #: flatbed PNG render with every phenomenon, 3.0x and 8.5 um on its light-plate JPEG,
 #: ~2.1x on a 12 MP phone photo at 35 deg)
 NOISY_SD_SCALE = 2.0
+NOISY_SD_FLOOR_MM = 0.005
 #: Share of ``faint`` stations (measure/widths.py DETECTABLE_SNR) above which a line says so.
 FAINT_WARN_FRACTION = 0.05
-NOISY_SD_FLOOR_MM = 0.005
 
 
 class MeasureRefused(UserError):
