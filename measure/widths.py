@@ -29,8 +29,9 @@ the profile window, from the manifest geometry), ``label`` / ``fiducial`` / ``ru
 (the same for printed furniture), ``glare`` (saturated pixels on the bead), ``missing``
 (no bead: width 0), ``faint`` (no bead found where one would not stand out of the
 profile's noise either: ``DETECTABLE_SNR``; not data), ``fit`` (failed or implausible
-fit, or far noisier than the rest of its track: a logo, scratch or string in the profile), ``blob`` (far wider than commanded), ``end`` (within
-half a bead of a track end, where the profile cuts the round end cap).
+fit, or far noisier than the rest of its track: a logo, scratch or string in the profile),
+``blob`` (far wider than commanded), ``end`` (within half a bead of a track end, where the
+profile cuts the round end cap).
 """
 from __future__ import annotations
 
