@@ -354,6 +354,30 @@ def test_a_width_with_a_larger_but_small_sd_is_kept_and_a_misfit_is_not():
     assert not unfit(0.5 * one, 0.018 * one, 0.005 * one, 0.01 * one, 0.01 * one)[0]
 
 
+def test_the_fit_quality_bar_does_not_select_on_the_measured_width(monkeypatch, gap_scene):
+    """A quarter of the *measured* width as the sd bar kept the narrow beads' stations that
+    erred wide and dropped those that erred narrow (their sd grows as they read narrower):
+    measure_widths hands unfit the commanded width, whatever the fit read, and the same sd
+    fails or passes whatever the width it came with."""
+    import measure.widths as mw
+    man, smp, gone, g, reg = gap_scene
+    original, seen = mw.unfit, {}
+
+    def spy(width_cmd_mm, *args):
+        seen["w"] = np.asarray(width_cmd_mm).copy()
+        return original(width_cmd_mm, *args)
+
+    monkeypatch.setattr(mw, "unfit", spy)
+    tb = mw.measure_widths(g, man, reg).table
+    ok = np.isfinite(smp.width_nominal_mm)
+    np.testing.assert_allclose(seen["w"][ok], smp.width_nominal_mm[ok])
+    assert not np.allclose(tb.width_mm[ok & tb.valid], smp.width_nominal_mm[ok & tb.valid])
+    # a 0.25 mm bead with sd 30 um passes against its commanded width (bar 62.5 um); against
+    # a narrow reading of 0.08 mm (bar 25 um) it used to fail
+    one = np.ones(1)
+    assert not original(0.25 * one, 0.030 * one, 0.010 * one, 0.01 * one, 0.01 * one)[0]
+
+
 def test_a_valid_station_among_failed_fits_is_flagged_isolated():
     """measure.widths.isolated: stations every 0.25 mm. In a stretch of failed fits (a bead
     over a plate logo) the two that passed are flagged; valid stations next to a crossing
