@@ -74,7 +74,9 @@ RIGHT_COVARIATES = {
     "backpressure": {"width_nominal_mm", "flow_mm3_s"},
     "backlash": {"time_since_stop_s", "s_mm", "time_since_flow_change_s", "time_since_retract_s"},
     "bed": {"x_mm", "y_mm", "r_mm"},
-    "gear_slip": {"flow_mm3_s", "extruder_speed_mm_s"},
+    # the foreign slip grows with the filament pressure (ve (1 - k P)): flow is its
+    # steady-state proxy, the advance the fitted model holds (fit/covariates.py) its cause
+    "gear_slip": {"flow_mm3_s", "extruder_speed_mm_s", "advance_mm"},
 }
 
 
