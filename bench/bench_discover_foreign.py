@@ -23,7 +23,9 @@ import numpy as np
 from bench.common import Row
 from bench.foreign_printer import FAMILY, FOREIGN, RIGHT_COVARIATES, make_foreign_case
 
-SEEDS = int(os.environ.get("CALIB_BENCH_FOREIGN_SEEDS", "3"))
+#: Six: the covariate rules of fit/diagnose.py were shaped on seeds 0-2 (10 of 10 right
+#: there); seeds 3-5 are their held-out check (6 of 10), and the bench reports both.
+SEEDS = int(os.environ.get("CALIB_BENCH_FOREIGN_SEEDS", "6"))
 NO_FIT_CHI2 = 1.5
 
 
