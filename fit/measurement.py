@@ -111,3 +111,39 @@ def notes(states: list[dict], has_scan_bias: bool) -> list[str]:
         why = (cal.get("note") or "not calibrated").split(";")[0]
         out.append(f"{st['scan']}: widths are apparent widths ({why}); {tail}")
     return out
+
+
+def scatter(scan, wobble_rel: float | None = None) -> dict:
+    """How much of one scan's width error its stations share with their neighbours, against
+    what the misfit check allows the bead (fit/result.py chi2_nu_bead), all in mm.
+
+    own_sd_mm     median sd the fit weighs each station by (``width_sd_own_mm``)
+    shared_sd_mm  median sqrt(width_sd_mm^2 - own^2): the part of the calibrated sd
+                  (measure/widths.py ``calibrated_sd``: the widths' second differences
+                  along the tracks) that neighbours share: plate texture, JPEG blocks,
+                  glare, focus
+    wobble_allowed_mm  WOBBLE_REL_MAX x the median width: the bead wobble chi2_nu_bead
+                  accepts beyond the own sd
+    chi2_nu_bead_expected  (own^2 + shared^2 + allowed^2) / (own^2 + allowed^2): what a
+                  model that is right reads on these widths, the measurement alone
+
+    On a phone photo of a sparkling textured plate (bench_e2e's sparkle case) the shared
+    part is ~80 um against ~16 allowed: the right model's fits read chi2_nu_bead 2.6-3.1
+    and were refused as misfits. Over the valid stations of ``scan`` (fit.data.ScanData).
+    """
+    from fit.result import WOBBLE_REL_MAX
+
+    rel = WOBBLE_REL_MAX if wobble_rel is None else wobble_rel
+    t = scan.table
+    idx = scan.order
+    whole = np.asarray(t.width_sd_mm, float)[idx]
+    own = np.asarray(t.fit_sd_mm(), float)[idx]
+    ok = np.isfinite(whole) & np.isfinite(own)
+    if not ok.any():
+        return {}
+    o = float(np.median(own[ok]))
+    sh = float(np.median(np.sqrt(np.maximum(whole[ok] ** 2 - own[ok] ** 2, 0.0))))
+    a = rel * float(np.median(np.abs(scan.y_mm))) if len(scan.y_mm) else 0.0
+    den = o * o + a * a
+    return {"own_sd_mm": o, "shared_sd_mm": sh, "wobble_allowed_mm": a,
+            "chi2_nu_bead_expected": float((den + sh * sh) / den) if den > 0 else float("nan")}

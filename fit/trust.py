@@ -135,6 +135,17 @@ def _bound_problem(name: str, p: dict, prior: dict) -> str | None:
     return None
 
 
+#: A misfit is put down to the measurement when the reduced chi-square is at most this
+#: multiple of what a right model reads on the scan's own scatter (and that is above the bar).
+NOISE_EXPLAINS = 1.5
+
+
+def _noise_explains(sc: dict, chi2: float, chi2_max: float) -> bool:
+    """Whether the scan's own scatter (fit/measurement.py ``scatter``) accounts for ``chi2``."""
+    exp = float(sc.get("chi2_nu_bead_expected", math.nan))
+    return bool(math.isfinite(exp) and exp > chi2_max and chi2 <= NOISE_EXPLAINS * exp)
+
+
 def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
     """The verdict on one fit (the dict of ``fit.json`` or ``FitResult.to_json()``)."""
     problems: list[str] = []
@@ -250,12 +261,31 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
     spec = str(doc.get("model") or "MODEL")
     checks["apparent_widths_without_scan_bias"] = no_offset
 
+    # a misfit that the scan's own scatter accounts for (fit/measurement.py scatter): the
+    # widths' error shared between neighbours beyond the bead wobble the check allows
+    noisy = [sc for sc in (diag.get("measurement") or {}).get("scatter", [])
+             if _noise_explains(sc, chi2, chi2_max)]
+    misfit = any("does not fit" in p for p in problems)
+    checks["misfit_within_measurement_scatter"] = [sc["scan"] for sc in noisy] if misfit else []
+    if noisy and misfit:
+        sc = max(noisy, key=lambda x: x["shared_sd_mm"])
+        cautions.append(
+            f"{sc['scan']}: along the tracks its widths scatter {1000 * sc['shared_sd_mm']:.0f} um "
+            f"beyond each station's own error (plate texture, JPEG, glare or focus), more than the "
+            f"{1000 * sc['wobble_allowed_mm']:.0f} um bead wobble the misfit check allows: a right model "
+            f"reads a reduced chi-square of about {sc['chi2_nu_bead_expected']:.1f} on it, so this misfit "
+            f"({chi2:.2f}) may be the measurement's, not a missing effect")
+
     if nuisance and not (any("does not fit" in p for p in problems) or structured):
         advice = f"fit `{nuisance[0]['model']}` instead (`calib fit ... --model {nuisance[0]['model']}`)"
     elif no_offset and (any("does not fit" in p for p in problems) or structured):
         advice = (f"the widths are apparent widths (their edge offset could not be calibrated) and the "
                   f"model has no scan_bias: fit `{spec}+scan_bias` first (`calib fit ... --model "
                   f"{spec}+scan_bias`); if that still does not fit, run `calib diagnose` with it")
+    elif noisy and misfit:
+        advice = ("measure the print again before looking for a missing effect: a flatbed scan saved "
+                  "as PNG or TIFF, or a photo in diffuse light square to the print (textured plates "
+                  "sparkle under a lamp); if the new widths still do not fit, run `calib diagnose`")
     elif any("does not fit" in p for p in problems) or structured:
         advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
                   "missing effect, then fit the model it names")

@@ -142,6 +142,43 @@ def test_a_misfit_on_uncalibrated_widths_first_asks_for_scan_bias():
     assert assess(_doc(chi2=12.0)).advice.startswith("run `calib diagnose`")
 
 
+def test_a_misfit_the_scans_own_scatter_accounts_for_asks_for_a_better_scan():
+    """Widths whose error neighbours share (sd 81 um against an own sd of 23 um, as on the
+    sparkling-plate phone scans) give a right model chi2_nu_bead ~9 from the measurement
+    alone: a misfit within 1.5x that asks for a better scan, still refused; a misfit far
+    beyond it (the scan's scatter cannot make it) or a quiet scan asks for diagnose."""
+    from types import SimpleNamespace
+
+    from fit.measurement import scatter
+    from measure.table import WidthTable
+
+    n = 400
+    y = np.full(n, 0.8)
+    tab = WidthTable(track=np.zeros(n, int), s_mm=np.arange(n) * 0.25, x_mm=np.zeros(n), y_mm=np.zeros(n),
+                     t_s=np.arange(n) * 0.01, width_mm=y, width_sd_mm=np.full(n, 0.084),
+                     valid=np.ones(n, bool), width_sd_own_mm=np.full(n, 0.023))
+    sc = scatter(SimpleNamespace(table=tab, order=np.arange(n), y_mm=y))
+    assert sc["shared_sd_mm"] == pytest.approx(math.sqrt(0.084 ** 2 - 0.023 ** 2))
+    assert sc["wobble_allowed_mm"] == pytest.approx(0.016)
+    assert sc["chi2_nu_bead_expected"] == pytest.approx((0.084 ** 2 + 0.016 ** 2) / (0.023 ** 2 + 0.016 ** 2))
+
+    def verdict(chi2, scat):
+        doc = _doc(chi2=chi2)
+        doc["diagnostics"] = {"measurement": {"scatter": [{"scan": "photo", **scat}]}}
+        return assess(doc)
+
+    v = verdict(3.0, sc)
+    assert not v.trustworthy and "measure the print again" in v.advice
+    assert v.checks["misfit_within_measurement_scatter"] == ["photo"]
+    assert any("81 um beyond each station's own error" in c for c in v.cautions)
+    far = verdict(40.0, sc)
+    assert far.advice.startswith("run `calib diagnose`") and not far.checks["misfit_within_measurement_scatter"]
+    quiet = scatter(SimpleNamespace(table=tab.subset(np.ones(n, bool)), order=np.arange(n), y_mm=y))
+    quiet.update(shared_sd_mm=0.004, chi2_nu_bead_expected=1.05)
+    assert verdict(3.0, quiet).advice.startswith("run `calib diagnose`")
+    assert verdict(1.0, sc).trustworthy
+
+
 def _wobbly_line(missing_um, seed=0):
     """A bead 0.6 mm wide whose own width wanders by 1.2 % (OU, 20 mm), measured with a
     2 um sd; plus, if asked, an effect the line model lacks (a 60 mm-period ripple)."""

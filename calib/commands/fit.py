@@ -170,8 +170,11 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         from fit.noise_envelope import widen
 
         widen(problem, res, seed=seed, derive=derive)
+    from fit.measurement import scatter
+
     res.diagnostics["measurement"] = {"scans": states, "notes": meas_notes,
-                                      "scan_bias_priors": cal}
+                                      "scan_bias_priors": cal,
+                                      "scatter": [{"scan": sc.name, **scatter(sc)} for sc in data.scans]}
     res.diagnostics["missing_stations"] = missing_info(problem)
     res.trust = assess(res.to_json(), chi2_max=chi2_max).to_json()
     return res, problem
