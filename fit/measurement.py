@@ -127,9 +127,10 @@ def scatter(scan, wobble_rel: float | None = None) -> dict:
     chi2_nu_bead_expected  (own^2 + shared^2 + allowed^2) / (own^2 + allowed^2): what a
                   model that is right reads on these widths, the measurement alone
 
-    On a phone photo of a sparkling textured plate (bench_e2e's sparkle case) the shared
-    part is ~80 um against ~16 allowed: the right model's fits read chi2_nu_bead 2.6-3.1
-    and were refused as misfits. Over the valid stations of ``scan`` (fit.data.ScanData).
+    On a phone photo of a sparkling textured plate (the direct-drive spiral, `--realism
+    all,sparkle`) the shared part was 29 um against 13 allowed, expected 2.3; the right
+    model's fits of bench_e2e's sparkle case read chi2_nu_bead 2.6-3.1 and were refused
+    as misfits. Over the valid stations of ``scan`` (fit.data.ScanData).
     """
     from fit.result import WOBBLE_REL_MAX
 

@@ -268,6 +268,9 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
     misfit = any("does not fit" in p for p in problems)
     checks["misfit_within_measurement_scatter"] = [sc["scan"] for sc in noisy] if misfit else []
     if noisy and misfit:
+        problems[:] = [p.replace("an effect the model lacks is pulling the values, and the intervals are "
+                                 "too narrow", "an effect the model lacks, or the scan's own scatter (below), "
+                                 "and the intervals are too narrow either way") for p in problems]
         sc = max(noisy, key=lambda x: x["shared_sd_mm"])
         cautions.append(
             f"{sc['scan']}: along the tracks its widths scatter {1000 * sc['shared_sd_mm']:.0f} um "

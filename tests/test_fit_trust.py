@@ -171,6 +171,7 @@ def test_a_misfit_the_scans_own_scatter_accounts_for_asks_for_a_better_scan():
     assert not v.trustworthy and "measure the print again" in v.advice
     assert v.checks["misfit_within_measurement_scatter"] == ["photo"]
     assert any("81 um beyond each station's own error" in c for c in v.cautions)
+    assert "or the scan's own scatter" in v.problems[0]
     far = verdict(40.0, sc)
     assert far.advice.startswith("run `calib diagnose`") and not far.checks["misfit_within_measurement_scatter"]
     quiet = scatter(SimpleNamespace(table=tab.subset(np.ones(n, bool)), order=np.arange(n), y_mm=y))
