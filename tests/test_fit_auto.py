@@ -63,3 +63,39 @@ def test_a_step_added_from_a_tie_says_so_in_the_chain():
     lines = r.lines()
     assert "as good: backlash" in lines[2] and "as good" not in lines[1]
     assert r.to_json()["steps"][1]["tied"] == ["backlash"]
+
+
+def _fake_diagnose(rounds):
+    """A stand-in for fit.diagnose.diagnose that returns the given rounds of candidates:
+    each round (base (rms_mm, chi2_nu, bic), [(effect, delta_bic, chi2_nu_after), ...])."""
+    from types import SimpleNamespace as NS
+    it = iter(rounds)
+
+    def fake(scan, spec, build, library, user, seed=0, base=None, progress=False, priors=None):
+        (rms, chi2, bic), cands = next(it)
+        b = base or NS(rms_mm=rms, chi2_nu=chi2, bic=bic, chi2_nu_bead=chi2 / 2)
+        cs = [NS(effect=e, spec=f"{spec}+{e}", delta_bic=db, chi2_nu_after=c2,
+                 fit=NS(rms_mm=rms, chi2_nu=c2, bic=b.bic - db, chi2_nu_bead=c2 / 2))
+              for e, db, c2 in cands]
+        return NS(base=b, covariates=[NS(name="speed_mm_s", score=0.3)], candidates=cs,
+                  best=cs[0].effect if cs else None, tied=[])
+    return fake
+
+
+def test_a_nuisance_joins_on_bic_alone_unless_it_raises_the_misfit(monkeypatch):
+    """spread (fit/nuisance.py) joins the chain on BIC even where it lowers chi2_nu by
+    less than 5 %, but not where it raises it (realdata SpStartStopTest2: +27 BIC with
+    chi2_nu 253 -> 267, the noise model re-balancing)."""
+    import fit.auto
+    monkeypatch.setattr(fit.auto, "diagnose", _fake_diagnose([
+        ((0.244, 252.5, 0.0), [("spread", 27.0, 267.2), ("heading", 5.0, 361.0)])]))
+    r = auto_model(None, None, [], [], base_spec="pa+kalico_tanh+backlash")
+    assert r.model == "pa+kalico_tanh+backlash" and len(r.steps) == 1
+    assert "spread" in r.stop and "raises the reduced chi-square" in r.stop
+    assert "no library effect explains the rest" in r.stop
+
+    monkeypatch.setattr(fit.auto, "diagnose", _fake_diagnose([
+        ((0.010, 5.0, 0.0), [("spread", 27.0, 4.9), ("heading", 5.0, 4.0)]),
+        ((0.010, 4.9, -27.0), [("heading", 3.0, 4.8)])]))
+    r = auto_model(None, None, [], [], base_spec="pa")
+    assert [s.model for s in r.steps] == ["pa", "pa+spread"]
