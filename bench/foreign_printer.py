@@ -99,9 +99,12 @@ def _uniform(tl):
 
 
 def simulate(manifest, tau_s: float, hidden: str | None, p: dict | None = None,
-             height_mm: float = 0.2):
-    """Deposited cross-section A (mm^2) at every station of ``sample_points(manifest, 0.5)``
-    (and the stations), for the base linear spring ``tau_s`` plus ``hidden``."""
+             height_mm: float = 0.2, ds_mm: float = 0.5, margin_mm: float = 0.5,
+             record: dict | None = None):
+    """Deposited cross-section A (mm^2) at every station of ``sample_points(manifest, ds_mm,
+    margin_mm=margin_mm)``
+    (and the stations), for the base linear spring ``tau_s`` plus ``hidden``. ``record``:
+    a dict that receives the outflow, ``t_s`` (uniform DT_S grid) and ``q_mm3_s`` on it."""
     p = p or {}
     prof = manifest.printer
     af = filament_area_mm2(prof["filament_diameter_mm"])
@@ -167,7 +170,9 @@ def simulate(manifest, tau_s: float, hidden: str | None, p: dict | None = None,
             x2 += DT_S * (x1 - x2) / th
             vn = max(0.0, vn + p["a"] * (x2 - vn))
         q[k] = vn * af
-    smp = sample_points(manifest, ds_mm=0.5, margin_mm=0.5)
+    if record is not None:
+        record.update(t_s=t, q_mm3_s=q)
+    smp = sample_points(manifest, ds_mm=ds_mm, margin_mm=margin_mm)
     area = np.zeros(len(smp.s_mm))
     for tid in np.unique(smp.track):
         on = (trk == tid) & np.isfinite(s)
@@ -189,9 +194,9 @@ def simulate(manifest, tau_s: float, hidden: str | None, p: dict | None = None,
     return area, h_st, smp
 
 
-def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01) -> ForeignCase:
-    """The probe print (fit/hidden.py) on the foreign printer with ``hidden``, widths with
-    ``noise_mm`` of white measurement noise; the same stop blobs flagged as make_case."""
+def _draw(hidden: str, seed: int):
+    """(rng, probe manifest, tau_s, effect parameters) of a case: tau 0.35 s x lognormal(0.2),
+    the effect's parameters within +-20 % of FOREIGN's."""
     from fit.hidden import probe_manifest
 
     rng = np.random.default_rng(seed)
@@ -201,6 +206,13 @@ def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01) -> For
     man = probe_manifest(prime_mm=PRIME_MM)
     tau = 0.35 * float(np.exp(0.2 * rng.standard_normal()))
     p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN[hidden].items()}
+    return rng, man, tau, p
+
+
+def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01) -> ForeignCase:
+    """The probe print (fit/hidden.py) on the foreign printer with ``hidden``, widths with
+    ``noise_mm`` of white measurement noise; the same stop blobs flagged as make_case."""
+    rng, man, tau, p = _draw(hidden, seed)
     a1, h1, smp = simulate(man, tau, hidden, p)
     a0, h0, _ = simulate(man, tau, None)
     w1 = np.asarray(bead_width_mm(np.maximum(a1, 0.0), h1))
@@ -215,3 +227,104 @@ def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01) -> For
                        valid=valid, flag=flag)
     rms = float(np.sqrt(np.mean((w1[valid] - w0[valid]) ** 2)))
     return ForeignCase(hidden, table, man, noise_mm, rms)
+
+
+@dataclass
+class RenderedForeignCase(ForeignCase):
+    """A foreign case pictured and measured: ``table`` is what `calib measure` read (every
+    other station, 0.5 mm apart as the white-noise cases); ``truth_mm`` the foreign
+    printer's widths at those stations; ``figures`` the measurement's error against them
+    (rms_mm, bias_mm over the valid stations, valid share, whether the widths are apparent)."""
+
+    truth_mm: np.ndarray = None
+    figures: dict = None
+    #: the measurement summary's ``apparent_width`` block (fit/measurement.py auto_start)
+    calibration: dict = None
+
+
+def render_foreign_case(hidden: str, seed: int = 0, camera: str = "flatbed", realism: str = "all",
+                        plate: str = "dark", plastic: str = "opaque", dpi: float = 600.0,
+                        tilt_deg: float = 35.0) -> RenderedForeignCase:
+    """The probe print of :func:`make_foreign_case` (the same draws of tau and the effect),
+    pictured by measure/render.py with ``realism`` (measure/phenomena.py; strings and raster
+    gaps from this printer's own outflow) and measured by measure/pipeline.py with the pose
+    given by eight points of the true camera (the probe has no markers; issue #11 item 4:
+    "rendered with the realistic camera ... and measured by our pipeline").
+
+    What the fit then sees is not this module's widths plus white noise but apparent
+    widths: an edge offset of tens of um (no width reference on the probe, so not
+    calibrated: diagnose ``pa+scan_bias``, as `calib fit --model auto` starts), per-station
+    sds from the edge fits, flags. Stations within 1 mm of a planned stop are not used, as
+    in make_foreign_case (the two printers lay a standing nozzle's blob differently)."""
+    import os
+    import tempfile
+    from types import SimpleNamespace
+
+    from calib.commands.simulate import camera_for, write_image
+    from measure.phenomena import NEEDS_PHYSICS, Realism, deposit_pieces, irregular_widths
+    from measure.pipeline import measure_scan
+    from measure.render import render
+
+    _, man, tau, p = _draw(hidden, seed)
+    rec: dict = {}
+    a1, h1, smp = simulate(man, tau, hidden, p, ds_mm=0.25, margin_mm=0.0, record=rec)
+    a0, h0, _ = simulate(man, tau, None, ds_mm=0.25, margin_mm=0.0)
+    w1 = np.asarray(bead_width_mm(np.maximum(a1, 0.0), h1))
+    w0 = np.asarray(bead_width_mm(np.maximum(a0, 0.0), h0))
+    printed = np.isfinite(w1) & (w1 > 0.05)
+    n = len(w1)
+    stop_at = np.array([man.track(int(k)).params.get("stop_s_mm", np.nan) for k in smp.track])
+    at_stop = np.abs(smp.s_mm - stop_at) <= 1.0
+    # a standing nozzle lays its ooze at one arc length: as a flat bead that would be tens
+    # of mm wide; it is a dome, pictured (as deposit_pieces draws blobs) at most twice the
+    # commanded width. Those stations are not used (below).
+    w_draw = np.where(at_stop, np.minimum(w1, 2.0 * np.maximum(smp.width_nominal_mm, 0.3)), w1)
+    truth = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                       width_mm=np.where(printed, w_draw, 0.0), width_sd_mm=np.zeros(n), valid=printed,
+                       flag=np.where(printed, "", "missing").astype(object))
+    real = Realism.parse(realism, camera)
+    if "irregular" in real:
+        truth.width_mm[:] = irregular_widths(truth.track, truth.s_mm, truth.width_mm,
+                                             np.random.default_rng([int(seed), 11]), rel=real.irregular_rel,
+                                             corr_mm=real.irregular_corr_mm, abs_mm=real.irregular_mm,
+                                             short_mm=real.irregular_short_mm)
+    deposits = None
+    if set(NEEDS_PHYSICS) & real.enabled:
+        # this printer's outflow per timeline interval (filament mm), for the prime line and
+        # the strings on travel moves (measure/phenomena.py deposit_pieces)
+        tl = man.timeline
+        af = filament_area_mm2(man.printer["filament_diameter_mm"])
+        v_cum = np.concatenate([[0.0], np.cumsum(rec["q_mm3_s"] * DT_S)])
+        t_cum = np.concatenate([rec["t_s"], [rec["t_s"][-1] + DT_S]])
+        out = np.diff(np.interp(tl.t_s, t_cum, v_cum)) / af
+        deposits = deposit_pieces(man, SimpleNamespace(sim=SimpleNamespace(out_mm=[out])))
+    cam = camera_for(man, camera, dpi=dpi, tilt_deg=tilt_deg, seed=seed)
+    rendered = render(man, truth, cam, plate=plate, plastic=plastic, seed=seed, realism=real,
+                      deposits=deposits, jpeg_quality=85 if camera == "phone" else None)
+    xs, ys = np.percentile(smp.x_mm, [5, 50, 95]), np.percentile(smp.y_mm, [5, 50, 95])
+    bed = np.array([(x, y) for x in xs for y in ys if (x, y) != (xs[1], ys[1])], float)
+    with tempfile.TemporaryDirectory() as d:
+        path = write_image(os.path.join(d, "scan.jpg" if rendered.encoded else "scan.png"), rendered)
+        res = measure_scan(path, man, points=(bed, cam.project(bed)))
+    tb = res.table
+    key = {(int(t), round(float(s), 3)): i for i, (t, s) in enumerate(zip(truth.track, truth.s_mm))}
+    idx = np.array([key.get((int(t), round(float(s), 3)), -1) for t, s in zip(tb.track, tb.s_mm)])
+    # every other station (0.5 mm): the density of make_foreign_case, and half the fit's cost
+    keep = (idx >= 0) & (np.round(tb.s_mm / 0.25).astype(int) % 2 == 0)
+    tb, idx = tb.subset(keep), idx[keep]
+    stop_at = np.array([man.track(int(k)).params.get("stop_s_mm", np.nan) for k in tb.track])
+    blob = np.abs(tb.s_mm - stop_at) <= 1.0
+    tb.valid = tb.valid & ~blob
+    tb.flag = np.where(blob, "blob", tb.flag).astype(object)
+    t_true = truth.width_mm[idx]
+    ok = tb.valid & (t_true > 0)
+    e = tb.width_mm[ok] - t_true[ok]
+    figs = {"rms_mm": float(np.sqrt(np.mean(e ** 2))) if ok.any() else float("nan"),
+            "bias_mm": float(np.mean(e)) if ok.any() else float("nan"),
+            "valid": float(np.mean(tb.valid[t_true > 0])) if (t_true > 0).any() else 0.0,
+            "apparent": not bool(res.summary["apparent_width"]["applied"])}
+    on = printed & ~at_stop
+    rms = float(np.sqrt(np.mean((w1[on] - w0[on]) ** 2)))
+    noise = float(np.median(tb.width_sd_mm[tb.valid])) if tb.valid.any() else float("nan")
+    return RenderedForeignCase(hidden, tb, man, noise, rms, truth_mm=t_true, figures=figs,
+                               calibration=res.summary["apparent_width"])

@@ -148,3 +148,25 @@ def scatter(scan, wobble_rel: float | None = None) -> dict:
     den = o * o + a * a
     return {"own_sd_mm": o, "shared_sd_mm": sh, "wobble_allowed_mm": a,
             "chi2_nu_bead_expected": float((den + sh * sh) / den) if den > 0 else float("nan")}
+
+
+def chi2_nu_expected(scan) -> float:
+    """The reduced chi-square a right model reads on ``scan`` from its measurement alone,
+    weighed as the fit weighs it (by each station's own sd, ``width_sd_own_mm``):
+
+        E[chi2_nu] = mean_i (width_sd_i / own_i)^2
+
+    ``width_sd_mm`` is calibrated on the widths' second differences along the tracks
+    (measure/widths.py ``calibrated_sd``): the scatter the stations share with their
+    neighbours (plate texture, JPEG blocks, glare, the bead's own short wobble) as well as
+    their own. 1 for widths with white noise of known sd; 4-6 on the 600 dpi flatbed
+    renders with every phenomenon, where a right model reads chi2_nu ~5. A misfit is what
+    exceeds it (fit/diagnose.py). NaN without sds; over the valid stations of ``scan``."""
+    t = scan.table
+    idx = scan.order
+    whole = np.asarray(t.width_sd_mm, float)[idx]
+    own = np.asarray(t.fit_sd_mm(), float)[idx]
+    ok = np.isfinite(whole) & np.isfinite(own) & (own > 0)
+    if not ok.any():
+        return float("nan")
+    return float(np.mean(np.maximum(whole[ok] / own[ok], 1.0) ** 2))

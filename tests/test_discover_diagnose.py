@@ -296,3 +296,49 @@ def test_advance_is_the_pressure_the_model_stores():
     # a Bowden time constant: the same stations have not settled (the advance lags tau ve)
     p_slow = advance_mm(model, model.theta_from({"pa.tau_s": 2.0}), ctx)
     assert np.max(np.abs(p_slow[steady] / (2.0 * cov["extruder_speed_mm_s"][steady]) - 1)) > 0.1
+
+
+def test_a_misfit_is_judged_against_what_the_measurement_alone_gives_a_right_model():
+    """On measured widths a right model reads chi2_nu ~3-5 against the stations' own sd
+    (the scatter neighbours share: fit/measurement.py chi2_nu_expected). "Explains only
+    part" is judged on chi2_nu over that: the same leftover is a partial fit on white
+    noise of known sd and a full one where the measurement alone gives 4."""
+    d = _explains_part([("advance_mm", 0.14, 0.01)], chi2_after=3.6)
+    assert "explains only part" in d.verdict and d.named_covariate == "advance_mm"
+    from types import SimpleNamespace
+
+    from fit.covariates import CovariateScore
+    from fit.diagnose import Candidate, Diagnosis, _verdict
+
+    base = SimpleNamespace(rms_mm=0.05, chi2_nu=40.0, n=900, corr_len_mm=20.0, n_eff=30.0, bic=-4000.0)
+    fit = SimpleNamespace(params=lambda: {})
+
+    def verdict(expected):
+        c = Candidate("thermal", "pa+thermal", 90.0, 90.0, 0.02, 3.6, fit=fit, misfit_after=3.6 / expected)
+        d = Diagnosis(model="pa", base=base, cov=None, candidates=[c], chi2_nu_expected=expected,
+                      covariates=[CovariateScore("last_stop_duration_s", 0.3, 0.05, 0.4, 0.01)])
+        d.covariates_after = [CovariateScore("advance_mm", 0.2, 0.05, 0.14, 0.01)]
+        _verdict(d, "calib fit W --manifest M", "")
+        return d
+
+    d = verdict(4.0)
+    assert d.best == "thermal" and "explains only part" not in d.verdict
+    assert d.named_covariate == "last_stop_duration_s"
+    d = verdict(1.8)
+    assert "explains only part" in d.verdict and "2.00 times the 1.80" in d.verdict
+
+
+def test_expected_chi2_of_a_right_model_is_the_mean_squared_ratio_of_whole_to_own_sd():
+    from types import SimpleNamespace
+
+    from fit.measurement import chi2_nu_expected
+    from measure.table import WidthTable
+
+    n = 4
+    t = WidthTable(track=np.zeros(n, int), s_mm=np.arange(n) * 0.25, x_mm=np.zeros(n), y_mm=np.zeros(n),
+                   t_s=np.arange(n, dtype=float), width_mm=np.full(n, 0.5),
+                   width_sd_mm=np.array([0.01, 0.02, 0.01, 0.03]), valid=np.ones(n, bool))
+    scan = SimpleNamespace(table=t, order=np.arange(n))
+    assert chi2_nu_expected(scan) == pytest.approx(1.0)     # no own sd: white noise of known sd
+    t.width_sd_own_mm = np.full(n, 0.01)
+    assert chi2_nu_expected(scan) == pytest.approx((1 + 4 + 1 + 9) / 4)

@@ -77,6 +77,8 @@ def format_diagnosis(doc: dict) -> str:
             continue
         out.append(f"  {c['effect']:<16} {c['delta_bic']:>10.1f}   "
                    f"{1000 * c['rms_mm_after']:.1f} um  chi2_nu {c['chi2_nu_after']:.2f}"
+                   + (f" ({c['chi2_nu_bead_after']:.2f} with the bead's wobble)"
+                      if c.get("chi2_nu_bead_after") is not None else "")
                    + ("  (your effect)" if c.get("user") else ""))
     out += ["", doc["verdict"]]
     return "\n".join(out)
