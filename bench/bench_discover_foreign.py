@@ -36,8 +36,8 @@ from bench.foreign_printer import FAMILY, FOREIGN, RIGHT_COVARIATES, make_foreig
 SEEDS = int(os.environ.get("CALIB_BENCH_FOREIGN_SEEDS", "6"))
 SHAPED_ON_SEEDS = 3
 #: Seeds of the rendered cases (every foreign effect pictured on a 600 dpi flatbed with
-#: every phenomenon and measured by our pipeline; ~2.5 min each on 2 cores).
-RENDERED_SEEDS = int(os.environ.get("CALIB_BENCH_FOREIGN_RENDERED_SEEDS", "3"))
+#: every phenomenon and measured by our pipeline; 1.5-6 min each on 2 cores, ~25 min for 2).
+RENDERED_SEEDS = int(os.environ.get("CALIB_BENCH_FOREIGN_RENDERED_SEEDS", "2"))
 NO_FIT_CHI2 = 1.5
 
 
