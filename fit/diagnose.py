@@ -79,8 +79,8 @@ TIE_DELTA_BIC = 2.0
 #: Reduced chi-square left by the best candidate above which it "explains only part"
 #: (issue #11: "where no library form fits, chi2_nu > 1.5 after"), in units of what a right
 #: model reads from the measurement alone (Candidate.misfit_after; 1 for white noise of
-#: known sd, ~5 on the rendered foreign prints, where every best candidate read chi2_nu
-#: 4-80 and the verdict called each a partial fit). The covariates are then scored again
+#: known sd, 1.8-3.5 on the rendered foreign probe prints, bench_discover_foreign). The
+#: covariates are then scored again
 #: on what that candidate leaves, and the verdict names that one. Not chi2_nu_bead (the
 #: trust verdict's, with a bead wobble of 2 % of the width allowed): on the white-noise
 #: foreign prints the gear slip left chi2_nu 1.55-1.88 after thermal, its leftover lined up
@@ -236,8 +236,8 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
         cov.values["advance_mm"] = advance_mm(model, theta, scan.ctx)[o]
     scores = score_covariates(base.resid_mm, cov, track=smp.track[o], n_null=n_null, seed=seed)
     # what a right model reads from the measurement alone: 1 for white noise of known sd,
-    # ~5 on realistic renders (the scatter neighbours share), where chi2_nu > 1.5 after the
-    # best candidate would call every fit a partial one
+    # 1.8-3.5 on the rendered probe prints (the scatter neighbours share), where chi2_nu >
+    # 1.5 would call any fit a partial one
     expect = chi2_nu_expected(scan)
     expect = expect if np.isfinite(expect) else 1.0
 

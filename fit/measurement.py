@@ -159,9 +159,12 @@ def chi2_nu_expected(scan) -> float:
     ``width_sd_mm`` is calibrated on the widths' second differences along the tracks
     (measure/widths.py ``calibrated_sd``): the scatter the stations share with their
     neighbours (plate texture, JPEG blocks, glare, the bead's own short wobble) as well as
-    their own. 1 for widths with white noise of known sd; 4-6 on the 600 dpi flatbed
-    renders with every phenomenon, where a right model reads chi2_nu ~5. A misfit is what
-    exceeds it (fit/diagnose.py). NaN without sds; over the valid stations of ``scan``."""
+    their own. 1 for widths with white noise of known sd; 1.8-3.5 on the foreign probe
+    prints rendered on a 600 dpi flatbed with every phenomenon (bench_discover_foreign). A
+    misfit is what exceeds it (fit/diagnose.py). Scatter over longer stretches (the bead's
+    slow wobble, the light over the picture) is not in it: the probe's right model read
+    chi2_nu 3.4-21 times it there (docs/DISCOVER.md). NaN without sds; over the valid
+    stations of ``scan``."""
     t = scan.table
     idx = scan.order
     whole = np.asarray(t.width_sd_mm, float)[idx]
