@@ -136,7 +136,12 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "schema": "calib.measure-summary/1",
         "image": str(image_path),
         "image_size_px": list(reg.image_size),
-        "registration": {**reg.to_dict(), "placement": place.to_dict()},
+        "registration": {**reg.to_dict(), "placement": place.to_dict(),
+                         # how far along its track a station may sit (mm, median of the valid
+                         # stations; measure/register.py place_covariance): where the width
+                         # changes along the track, width_sd_mm carries slope x this
+                         "along_track_sd_mm": (float(np.median(meas.place_sd_mm[ok]))
+                                               if meas.place_sd_mm is not None and ok.any() else None)},
         "samples": int(len(table)),
         "valid": int(ok.sum()),
         "fraction_valid": valid_frac,

@@ -83,6 +83,10 @@ class Registration:
     track_score: float = float("nan")      # mean saturated track-likeness after refinement (0..1)
     info: dict = field(default_factory=dict)   # how an automatic pose was found (measure.autoreg)
     recovered_markers: list = field(default_factory=list)   # ids found by measure.fiducial_search
+    #: how well the pose fixes where each bed point is (:func:`place_covariance`): bed
+    #: points (K, 2) mm and the covariance (K, 2, 2) mm^2 of the bed point a pixel shows
+    place_pts_mm: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    place_cov_mm2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
 
     @property
     def camera(self) -> Camera:
@@ -100,6 +104,19 @@ class Registration:
 
     def px_per_mm(self, xy_mm) -> np.ndarray:
         return self.camera.px_per_mm(xy_mm)
+
+    def place_sd_mm(self, xy_mm, direction) -> np.ndarray:
+        """One-sigma uncertainty (mm) of the bed position the registration gives the points
+        ``xy_mm`` (N, 2), along the unit ``direction`` (N, 2) (a track's tangent: the
+        along-track error of a station). 0 where the pose's uncertainty is not known
+        (refinement not run)."""
+        xy = np.asarray(xy_mm, float).reshape(-1, 2)
+        if len(self.place_pts_mm) == 0 or len(xy) == 0:
+            return np.zeros(len(xy))
+        from scipy.spatial import cKDTree
+        _, j = cKDTree(self.place_pts_mm).query(xy)
+        d = np.asarray(direction, float).reshape(-1, 2)
+        return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", d, self.place_cov_mm2[j], d), 0.0))
 
     def to_dict(self) -> dict:
         return {"H_mm_to_px": np.asarray(self.H).tolist(),
@@ -541,9 +558,10 @@ def register(image, manifest, points=None, *, refine: bool = True,
             # unreliable: refine with both and keep the better-aligned result.
             tries = [(_refine(gray, mp, x, lay_pts, lay_w, pol, scale, corners, hints, method), pol)
                      for pol in (1.0, -1.0)]
-            (x, track_score), polarity = max(tries, key=lambda tr: tr[0][1])
+            (x, track_score, x_cov), polarity = max(tries, key=lambda tr: tr[0][1])
         else:
-            x, track_score = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method)
+            x, track_score, x_cov = _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints,
+                                            method)
         method += "+tracks"
         # Polarity again on the refined mapping (the hint start may have been too far off).
         polarity, clarity = polarity_at(x)
@@ -554,6 +572,9 @@ def register(image, manifest, points=None, *, refine: bool = True,
                        image_size=size, polarity=polarity, marker_ids=list(used),
                        marker_corners_px=[c for c in img_c] if used else [], warnings=warnings,
                        track_score=track_score if refine else float("nan"))
+    if refine:
+        sub = lay_pts[::max(1, len(lay_pts) // 400)]
+        reg.place_pts_mm, reg.place_cov_mm2 = sub, place_covariance(mp, x, x_cov, sub)
     if method.startswith("fiducials"):
         cam = reg.camera
         bleed = x[-2:] if refine else np.zeros(2)
@@ -585,8 +606,11 @@ def register(image, manifest, points=None, *, refine: bool = True,
 def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method):
     """Track-layout refinement (module docstring, step 2).
 
-    Returns (parameter vector, score): score = mean saturated track-likeness along the
-    layout at the finest scale (higher = better aligned)."""
+    Returns (parameter vector, score, covariance): score = mean saturated track-likeness
+    along the layout at the finest scale (higher = better aligned); covariance (JᵀJ)^-1
+    of the parameters from the last step's Jacobian (its residuals are in units of their
+    sd: corners 0.3 px, hints, the lens prior, and the track term, which carries the weight
+    of ~400 unit residuals), the Laplace approximation of the pose's uncertainty."""
     W = gray.shape[1]
     w_med = float(np.median(lay_w))
     if method == "points":
@@ -644,4 +668,32 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
         sol = optimize.least_squares(resid, x, method="lm", x_scale="jac", diff_step=1e-6, max_nfev=120)
         x = sol.x
     score = float(np.mean(np.tanh(D(mp.project(x, lay_pts)) / 2.0)))
-    return x, score
+    return x, score, np.linalg.pinv(sol.jac.T @ sol.jac)
+
+
+def place_covariance(mp: "_Mapping", x, x_cov, pts_mm, eps: float = 1e-6) -> np.ndarray:
+    """Covariance (K, 2, 2) mm^2 of the bed point that the image shows at the projection of
+    each of ``pts_mm`` (K, 2), from the covariance ``x_cov`` of the mapping's parameters:
+    a parameter error dx moves the projection by A dx (A = d uv / d x), which is the image
+    of the bed point P - J^-1 A dx (J = d uv / d P), so Cov(P) = J^-1 A Cov(x) A^T J^-T.
+
+    Along a straight track the layout holds the pose only across the track (the aperture
+    problem): a registration from point hints on the parallel tracks of bench/foreign_printer's
+    probe put every station 0.04-0.24 mm off along its track while the track-centre offsets
+    read 0.015 mm (2026-11-27); at a width step the width then errs by slope x that."""
+    pts = np.asarray(pts_mm, float)
+    nx = len(x)
+    if len(pts) == 0:
+        return np.zeros((0, 2, 2))
+    uv0 = mp.project(x, pts)
+    A = np.empty((len(pts), 2, nx))
+    for k in range(nx):
+        h = eps * max(1.0, abs(x[k]))
+        xp = x.copy()
+        xp[k] += h
+        A[:, :, k] = (mp.project(xp, pts) - uv0) / h
+    d = 1e-3
+    J = np.stack([(mp.project(x, pts + [d, 0.0]) - uv0) / d, (mp.project(x, pts + [0.0, d]) - uv0) / d], axis=2)
+    Jinv = np.linalg.inv(J)
+    G = Jinv @ A                                     # (K, 2, nx) mm per unit parameter
+    return G @ np.asarray(x_cov)[:nx, :nx] @ np.transpose(G, (0, 2, 1))

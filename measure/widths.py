@@ -154,6 +154,8 @@ class WidthMeasurement:
     plain_width_mm  the plain edge pair's width there (the same as the table elsewhere)
     sd_scale, sd_floor_mm   how the edge fits' sd was scaled and floored (mm) into
                     ``width_sd_mm`` by the scan's own scatter (:func:`calibrated_sd`)
+    place_sd_mm     the registration's along-track sd of each station (mm; :func:`slope_sd`
+                    carries it into ``width_sd_mm`` where the width changes along the track)
     """
 
     table: WidthTable
@@ -168,6 +170,7 @@ class WidthMeasurement:
     plain_width_mm: np.ndarray | None = None
     sd_scale: float = 1.0
     sd_floor_mm: float = 0.0
+    place_sd_mm: np.ndarray | None = None
 
 
 def widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
@@ -304,7 +307,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     # its blurred edge (>= 2 % of the contrast at the window's end) would bias the width
     flag[(flag == "") & (gap < NEIGHBOUR_FLAG_SIGMAS * fit.params[:, 5])] = "neighbour"
     if manifest is not None:
-        flag[(flag == "") & _at_end(manifest, smp, w, w_ref)] = "end"
+        flag[(flag == "") & _at_end(manifest, smp, w, w_ref, fit.params[:, 5])] = "end"
     blob = w > np.maximum(2.2 * w_ref, w_ref + 0.6)
     flag[(flag == "") & blob] = "blob"
     flag[(flag == "") & oblique(smp.track, smp.s_mm, c, flag == "")] = "oblique"
@@ -321,6 +324,12 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     sd_own = sd * _scatter_factor(smp.track, w, sd, valid)
     sd, sd_scale, sd_floor = calibrated_sd(smp.track, smp.s_mm, w, sd, valid)
     sd_own = np.minimum(sd_own, sd)
+    # where the width changes along the track, not knowing where along it the station is
+    # is an error in width too (the registration's along-track sd x the slope)
+    tangent = np.column_stack([-nrm[:, 1], nrm[:, 0]])
+    place_sd = registration_place_sd(registration, xy, tangent)
+    by_slope = slope_sd(smp.track, smp.s_mm, w, sd, valid, place_sd)
+    sd, sd_own = np.hypot(sd, by_slope), np.hypot(sd_own, by_slope)
     sd_own = np.where(np.isfinite(sd_own), sd_own, np.nan)
     w = np.where(np.isfinite(w), w, np.nan)
     sd = np.where(np.isfinite(sd), sd, np.nan)
@@ -330,7 +339,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else (), glare_streak=streak,
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w),
-                            sd_scale=sd_scale, sd_floor_mm=sd_floor)
+                            sd_scale=sd_scale, sd_floor_mm=sd_floor, place_sd_mm=place_sd)
 
 
 def isolated(track, s_mm, flag, half_mm: float | None = None, fraction: float | None = None):
@@ -539,12 +548,22 @@ def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s):
     return use, best, best_side[:, None] * normals[idx]
 
 
-def _at_end(manifest, smp, w_meas, w_ref):
-    """Stations within half a bead of a track end, where the profile cuts the round end
-    cap (a chord, not the width). "Bead" = the widest measured within 3 mm of that end,
-    since end blobs are common (ooze, restore)."""
+def _at_end(manifest, smp, w_meas, w_ref, blur_mm=None):
+    """Stations within half a bead (+ 0.1 mm) of a track end, where the profile cuts the
+    round end cap (a chord, not the width). "Bead" = the widest measured within 3 mm of
+    that end, since end blobs are common (ooze, restore).
+
+    A blob (radius R, centred on the end) wider than the bead (width w, the median 1-3 mm
+    before the end) lifts the widths of the stations whose profile sees it: the profile
+    spans STRIP_MM of track and sees the blob's edge through the blur (``blur_mm``, sd),
+    so the reach is also STRIP_MM / 2 + 2 blurs + sqrt(R^2 - (w/2)^2) (where the blob's
+    chord is wider than the bead). The foreign printer's probe (bench/foreign_printer.py):
+    the drain after a track's last move left a 0.8 mm blob, and the station 0.5 mm before
+    the end, outside the reach of half the bead + 0.1 mm (0.48 mm), read 0.18-0.20 mm too
+    wide on two tracks."""
     out = np.zeros(len(smp), bool)
     wm = np.where(np.isfinite(w_meas), w_meas, 0.0)
+    blur = np.zeros(len(smp)) if blur_mm is None else np.nan_to_num(np.asarray(blur_mm, float))
     for tid in np.unique(smp.track):
         on = np.flatnonzero(smp.track == tid)
         L = manifest.track(int(tid)).length_mm
@@ -552,9 +571,73 @@ def _at_end(manifest, smp, w_meas, w_ref):
         for d in (s, L - s):            # distance to the start, to the end
             near = d < 3.0
             if near.any():
-                reach = max(float(np.max(wm[on][near])), float(np.max(w_ref[on][near]))) / 2 + 0.1
+                widest = max(float(np.max(wm[on][near])), float(np.max(w_ref[on][near])))
+                reach = widest / 2 + 0.1
+                before = near & (d >= 1.0) & (wm[on] > 0)
+                if before.any():
+                    r_blob = float(np.max(wm[on][near & (d < 1.0)], initial=0.0)) / 2
+                    w_bead = float(np.median(wm[on][before]))
+                    if r_blob > w_bead / 2:
+                        reach = max(reach, STRIP_MM / 2 + 2 * float(np.median(blur[on][near]))
+                                    + float(np.sqrt(r_blob ** 2 - (w_bead / 2) ** 2)))
                 out[on[near & (d < reach)]] = True
     return out
+
+
+def registration_place_sd(registration, xy_mm, tangent) -> np.ndarray:
+    """Along-track sd (mm) of where the registration puts each station (0 when it does not say)."""
+    f = getattr(registration, "place_sd_mm", None)
+    return np.zeros(len(xy_mm)) if f is None else np.nan_to_num(f(xy_mm, tangent))
+
+
+def slope_sd(track, s_mm, w_mm, sd_mm, valid, place_sd_mm, half_mm: float = 0.5,
+             k_sig: float = 3.0) -> np.ndarray:
+    """Width sd (mm) from not knowing where along its track a station is: |dw/ds| x
+    ``place_sd_mm`` (errors in the independent variable carried through the slope: the
+    effective-variance method, Orear 1982, Am. J. Phys. 50, 912).
+
+    The slope (mm/mm) is the larger of two estimates from the valid stations of the same
+    track: the least-squares line over +-``half_mm``, its square debiased by its variance
+    from the widths' sds (so that noise alone adds little: ~0.2 um per um of sd at a 0.2
+    mm place sd); and, where a width steps faster than that line can follow, the one-sided
+    differences to the neighbours that exceed ``k_sig`` sds of their two widths (the RMS
+    of the two sides: a step's corner station has a flat side and a steep one). 0 at
+    invalid stations and where ``place_sd_mm`` is 0 (markers hold the pose to ~0.01 mm).
+
+    Why: registered from point hints, the parallel tracks of the foreign printer's probe
+    (bench/foreign_printer.py) sat 0.04-0.24 mm off along their length (the pose's own
+    sd there: 0.08-0.28 mm), and the stations on the slow-to-fast width step (slope
+    0.4-0.6) read 25-105 um off with sds of 6-7 um: 63 % of a right model's chi2 on 1 %
+    of its stations."""
+    track, s = np.asarray(track), np.asarray(s_mm, float)
+    w, sd = np.asarray(w_mm, float), np.asarray(sd_mm, float)
+    place = np.asarray(place_sd_mm, float)
+    out = np.zeros(len(s))
+    ok = np.asarray(valid, bool) & np.isfinite(w) & np.isfinite(sd) & (place > 0)
+    for t in np.unique(track[ok]):
+        i = np.flatnonzero((track == t) & ok)
+        i = i[np.argsort(s[i], kind="stable")]
+        if len(i) < 2:
+            continue
+        ss, ww, vv = s[i], w[i], sd[i] ** 2
+        # windowed least-squares slope and its variance (sum of (s - mean)^2 var_j) / Sxx^2
+        lo = np.searchsorted(ss, ss - half_mm, "left")
+        hi = np.searchsorted(ss, ss + half_mm, "right")
+        g2 = np.zeros(len(i))
+        for k in range(len(i)):
+            sj, wj, vj = ss[lo[k]:hi[k]], ww[lo[k]:hi[k]], vv[lo[k]:hi[k]]
+            d = sj - sj.mean()
+            sxx = float(d @ d)
+            if len(sj) >= 3 and sxx > 0:
+                g = float(d @ (wj - wj.mean())) / sxx
+                g2[k] = max(g * g - float(d * d @ vj) / sxx ** 2, 0.0)
+        ds = np.maximum(np.diff(ss), 1e-6)
+        dw2 = np.diff(ww) ** 2
+        step = (dw2 > k_sig ** 2 * (vv[1:] + vv[:-1])) & (ds <= 2 * half_mm)
+        side = np.where(step, (dw2 - vv[1:] - vv[:-1]) / ds ** 2, 0.0)
+        both = (np.concatenate([[0.0], side]) + np.concatenate([side, [0.0]])) / 2
+        out[i] = np.sqrt(np.maximum(g2, both))
+    return out * np.where(ok, place, 0.0)
 
 
 def _scatter_factor(track, w, sd, valid) -> float:

@@ -114,3 +114,54 @@ def test_a_marker_whose_crop_fails_plain_is_refined_through_a_median(monkeypatch
     assert ids2 == ids and 5 in calls
     for a, b in zip(good, corners):
         assert np.abs(a - b).max() < 0.5                 # px: refined, not the search corners
+
+
+def _along_and_across_error_mm(reg, r):
+    """True registration error (mm) of every station along and across its track (the
+    scene's tracks run along x)."""
+    tr = r.table
+    p = np.column_stack([tr.x_mm, tr.y_mm])
+    cam = r.camera
+    # the bed point the registration's pixel for p really shows
+    shown = cam.unproject(reg.project(p))
+    return shown[:, 0] - p[:, 0], shown[:, 1] - p[:, 1], p
+
+
+def test_the_pose_says_how_well_it_holds_each_point_along_the_tracks():
+    """Point hints on straight parallel tracks hold the pose across them and only weakly
+    along them (the aperture problem): the registration's own along-track sd must cover
+    the true along-track error, and with four markers it is small."""
+    man, r = rendered("phone", with_fiducials=False)
+    bed = np.array([[20, 20], [80, 20], [80, 45], [20, 45.0]])
+    img = r.camera.project(bed) + np.random.default_rng(0).normal(0, 3.0, (4, 2))
+    reg = register(gray_of(r), man, points=(bed, img))
+    e_along, _, p = _along_and_across_error_mm(reg, r)
+    sd_along = reg.place_sd_mm(p, np.tile([1.0, 0.0], (len(p), 1)))
+    assert np.all(sd_along > 0)
+    z = e_along / sd_along
+    assert np.mean(np.abs(z) < 2.0) >= 0.9 and np.max(np.abs(z)) < 4.0
+    # not covered by an sd too wide to mean anything: the clicks were ~3 px = ~0.2 mm off
+    assert np.median(sd_along) < 0.5
+
+    man, r = rendered("flat")
+    reg = register(gray_of(r), man)
+    p = np.column_stack([r.table.x_mm, r.table.y_mm])
+    sd_along = reg.place_sd_mm(p, np.tile([1.0, 0.0], (len(p), 1)))
+    assert np.median(sd_along) < 0.02
+
+
+def test_place_covariance_of_a_translation_is_the_translation():
+    """Known answer: a 10 px/mm scan whose only uncertain parameter is the homography's
+    x translation (normalised units) moves every bed point by the same x, not y."""
+    from measure.register import _Mapping, place_covariance
+
+    H0 = np.array([[10.0, 0, 50], [0, 10.0, 40], [0, 0, 1]])
+    pts = np.array([[0.0, 0], [30, 5], [60, 40]])
+    mp = _Mapping(H0, (1000, 800), False, pts)
+    x = mp.x0()
+    cov = np.zeros((8, 8))
+    cov[2, 2] = 0.001 ** 2                  # Hn[0, 2]: image x in units of half the image size
+    C = place_covariance(mp, x, cov, pts)
+    sd_x_mm = 0.001 * 500 / 10.0            # si = 500 px, 10 px/mm
+    assert np.allclose(np.sqrt(C[:, 0, 0]), sd_x_mm, rtol=1e-3)
+    assert np.allclose(C[:, 1, 1], 0.0, atol=1e-12) and np.allclose(C[:, 0, 1], 0.0, atol=1e-12)

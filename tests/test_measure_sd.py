@@ -1,6 +1,7 @@
 """The per-station sd, calibrated by the scan's own scatter (measure/widths.py calibrated_sd):
 recovery of a known scale and floor, blind to steps, never below the edge fit's sd."""
 import numpy as np
+import pytest
 
 from measure.widths import calibrated_sd
 
@@ -71,3 +72,32 @@ def test_the_fit_weighs_by_the_stations_own_sd_and_old_tables_still_read(tmp_pat
     lines = WidthTable(**base).to_csv_text().splitlines()
     old.write_text("\n".join(",".join(r.split(",")[:9]) for r in lines) + "\n")
     np.testing.assert_allclose(WidthTable.load(old).fit_sd_mm(), 0.004)
+
+
+def test_slope_term_is_the_slope_times_the_place_sd_and_nothing_on_a_flat_track():
+    from measure.widths import slope_sd
+
+    s = np.arange(0, 20, 0.25)
+    track = np.zeros(len(s), int)
+    # a ramp of 0.5 mm/mm, exact widths: slope x place sd everywhere
+    w = 0.3 + 0.5 * s
+    out = slope_sd(track, s, w, np.zeros(len(s)), np.ones(len(s), bool), np.full(len(s), 0.1))
+    assert np.allclose(out, 0.05)
+    # a flat track with noise of known sd: the debiased slope adds little on average
+    rng = np.random.default_rng(1)
+    sd = np.full(2000, 0.008)
+    s2 = np.arange(2000) * 0.25
+    w2 = 0.5 + sd * rng.standard_normal(2000)
+    out2 = slope_sd(np.zeros(2000, int), s2, w2, sd, np.ones(2000, bool), np.full(2000, 0.2))
+    # without the debiasing the RMS slope would be sqrt(2) 0.008 / 0.25 = 0.045 mm/mm, 9 um
+    assert np.sqrt(np.mean(out2 ** 2)) < 0.004
+    # a step: the corner stations carry it, the far ones not; invalid stations and an
+    # unknown place (0) add nothing
+    w3 = np.where(s < 10, 0.6, 0.3)
+    valid = np.ones(len(s), bool)
+    valid[3] = False
+    out3 = slope_sd(track, s, w3, np.zeros(len(s)), valid, np.where(s < 15, 0.1, 0.0))
+    i = int(np.searchsorted(s, 10.0))
+    assert out3[i] == pytest.approx(0.1 * 0.3 / 0.25 / np.sqrt(2))
+    assert out3[i - 1] == pytest.approx(out3[i])
+    assert out3[i + 2] == 0 and out3[3] == 0 and np.all(out3[s >= 15] == 0)
