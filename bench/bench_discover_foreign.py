@@ -90,12 +90,15 @@ def one(hidden: str, seed: int, rendered: bool = False) -> dict:
          "bead_before": d.base.chi2_nu_bead, "bead_after": top.chi2_nu_bead_after,
          "expected": d.chi2_nu_expected, "misfit_after": top.misfit_after,
          "cov_right": cov in RIGHT_COVARIATES[hidden], "says_no_fit": says_no_fit,
-         "size": c.effect_rms_mm / c.noise_mm, "figures": getattr(c, "figures", None)}
+         "size": c.effect_rms_mm / c.noise_mm, "figures": getattr(c, "figures", None),
+         # a geometric best candidate is weighed against the picture's own pattern (view_xy)
+         "picture_caution": "Caution: the picture" in d.verdict}
     _log(f"{hidden} seed {seed}{' (rendered)' if rendered else ''}: {d.model} + top {top.effect} (dBIC {top.delta_bic:.0f}"
          + (f"; tied: {', '.join(d.tied)}" if d.tied else "") + "), chi2 "
          f"{r['chi2_before']:.1f} -> {r['chi2_after']:.2f} (expected {r['expected']:.2f}; with the bead's wobble "
          f"{r['bead_before']:.2f} -> {r['bead_after']:.2f}), top covariate {cov}"
-         + (", says no library form fits" if says_no_fit else ""))
+         + (", says no library form fits" if says_no_fit else "")
+         + (", and that the picture's own pattern explains it as well or better" if r["picture_caution"] else ""))
     return r
 
 

@@ -619,18 +619,20 @@ def slope_sd(track, s_mm, w_mm, sd_mm, valid, place_sd_mm, half_mm: float = 0.5,
         i = i[np.argsort(s[i], kind="stable")]
         if len(i) < 2:
             continue
-        ss, ww, vv = s[i], w[i], sd[i] ** 2
-        # windowed least-squares slope and its variance (sum of (s - mean)^2 var_j) / Sxx^2
+        ss, ww, vv = s[i] - s[i].mean(), w[i], sd[i] ** 2     # centred: the sums cancel less
+        # windowed least-squares slope and its variance sum((s_j - mean)^2 var_j) / Sxx^2,
+        # every station's window at once from cumulative sums
+        cum = [np.concatenate([[0.0], np.cumsum(v)])
+               for v in (np.ones_like(ss), ss, ww, ss * ss, ss * ww, vv, ss * vv, ss * ss * vv)]
         lo = np.searchsorted(ss, ss - half_mm, "left")
         hi = np.searchsorted(ss, ss + half_mm, "right")
-        g2 = np.zeros(len(i))
-        for k in range(len(i)):
-            sj, wj, vj = ss[lo[k]:hi[k]], ww[lo[k]:hi[k]], vv[lo[k]:hi[k]]
-            d = sj - sj.mean()
-            sxx = float(d @ d)
-            if len(sj) >= 3 and sxx > 0:
-                g = float(d @ (wj - wj.mean())) / sxx
-                g2[k] = max(g * g - float(d * d @ vj) / sxx ** 2, 0.0)
+        n, sx, sy, sxx, sxy, sv, ssv, sssv = (q[hi] - q[lo] for q in cum)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = sx / n
+            vxx = sxx - sx * mean
+            g = (sxy - mean * sy) / vxx
+            var_g = (sssv - 2 * mean * ssv + mean * mean * sv) / vxx ** 2
+            g2 = np.where((n >= 3) & (vxx > 1e-12), np.maximum(g * g - var_g, 0.0), 0.0)
         ds = np.maximum(np.diff(ss), 1e-6)
         dw2 = np.diff(ww) ** 2
         step = (dw2 > k_sig ** 2 * (vv[1:] + vv[:-1])) & (ds <= 2 * half_mm)

@@ -342,3 +342,43 @@ def test_expected_chi2_of_a_right_model_is_the_mean_squared_ratio_of_whole_to_ow
     assert chi2_nu_expected(scan) == pytest.approx(1.0)     # no own sd: white noise of known sd
     t.width_sd_own_mm = np.full(n, 0.01)
     assert chi2_nu_expected(scan) == pytest.approx((1 + 4 + 1 + 9) / 4)
+
+
+def test_a_bed_effect_is_weighed_against_the_pictures_own_pattern_over_the_bed():
+    """A picture whose apparent width drifts over the bed (light, focus: additive) passes
+    for a tilted bed unless the picture's nuisance is fitted beside it; a real tilted bed
+    (the height scales the width, A / h) is not taken for the picture."""
+    # the picture: +-80 um along x, added to a right pa print
+    c = make_case("bed_tilt", seed=3, scale=0.0, **FAST)
+    tb = c.table
+    tb.width_mm = np.where(tb.valid, tb.width_mm + 0.004 * tb.x_mm, tb.width_mm)
+    d = diagnose(observe(c.manifest, tb), "pa", lambda s: build_model(s, c.manifest.printer), list(REGISTRY),
+                 n_null=50)
+    assert d.best in ("bed_tilt", "bed_mesh")
+    assert d.picture_twin is not None and d.picture_twin.effect == "view_xy"
+    assert d.picture_twin.delta_bic > d.candidates[0].delta_bic + 10
+    assert "not the bed" in d.verdict and "--model pa+view_xy" in d.verdict
+    assert d.to_json()["picture_twin"]["effect"] == "view_xy"
+    # the bed: twice the hidden tilt of fit/hidden.py
+    c = make_case("bed_tilt", seed=3, scale=2.0, **FAST)
+    d = diagnose(observe(c.manifest, c.table), "pa", lambda s: build_model(s, c.manifest.printer),
+                 list(REGISTRY), n_null=50)
+    assert d.best == "bed_tilt" and d.picture_twin is not None
+    assert d.picture_twin.delta_bic < d.candidates[0].delta_bic - 10
+    assert "Caution: the picture" not in d.verdict
+
+
+def test_a_tie_between_the_bed_and_the_picture_is_said():
+    from types import SimpleNamespace
+
+    from fit.diagnose import Candidate, Diagnosis, _verdict
+
+    base = SimpleNamespace(rms_mm=0.015, chi2_nu=5.2, n=801, corr_len_mm=6.4, n_eff=47.0, bic=-4600.0)
+    d = Diagnosis(model="pa+scan_bias", base=base, covariates=[], cov=None,
+                  candidates=[Candidate("bed_mesh", "pa+scan_bias+bed_mesh", 25.4, 25.4, 0.0128, 1.0)])
+    d.picture_twin = Candidate("view_xy", "pa+scan_bias+view_xy", 24.0, 24.0, 0.0129, 1.0)
+    _verdict(d, "calib fit W --manifest M", "")
+    assert d.best == "bed_mesh" and "explains it as well" in d.verdict and "turned 90 deg" in d.verdict
+    d.picture_twin = Candidate("view_xy", "pa+scan_bias+view_xy", 12.0, 12.0, 0.0135, 1.0)
+    _verdict(d, "calib fit W --manifest M", "")
+    assert "Caution: the picture" not in d.verdict
