@@ -377,7 +377,8 @@ def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
             d.verdict += (f" Caution: the picture's own width pattern over the bed ({tw.effect}) explains it "
                           f"far better (Delta BIC {tw.delta_bic:.1f} against {best.delta_bic:.1f}): this looks like "
                           "the picture (light, focus or scale varying over its area), not the bed. Keep it out "
-                          f"of the values with --model {tw.spec}, or scan again flat and evenly lit.")
+                          f"of the values with: {command_prefix} --model {tw.spec}{effects_arg}; or scan again "
+                          "flat and evenly lit.")
         elif tw is not None and np.isfinite(tw.delta_bic) and tw.delta_bic >= best.delta_bic - TIE_DELTA_BIC:
             d.verdict += (f" Caution: the picture's own width pattern over the bed ({tw.effect}, Delta BIC "
                           f"{tw.delta_bic:.1f}) explains it as well: widths alone do not tell a bed whose "
