@@ -33,12 +33,15 @@ def test_measure_writes_csv_overlay_and_summary(scan, capsys):
     assert json.loads((d / "w.summary.json").read_text()) == s and "apparent_width" in s
     assert s["registration"]["residual_mm"] < 0.05 and s["fraction_valid"] > 0.95
     assert s["registration"]["marker_ids"] == [0, 1, 2, 3] and s["samples"] == len(tb)
+    # four markers hold the pose along the tracks too: no note about it
+    assert 0 < s["registration"]["along_track_sd_mm"] < 0.02
     # the station sd: whole >= own, both in the CSV
     assert s["station_sd"]["scale"] >= 1.0 and s["station_sd"]["floor_mm"] >= 0.0
     assert np.all(tb.width_sd_own_mm[tb.valid] <= tb.width_sd_mm[tb.valid] + 1e-5)
     qa = cv2.imread(str(d / "qa.png"))
     assert qa is not None and max(qa.shape[:2]) <= 2400
-    assert "valid, registration residual" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "valid, registration residual" in err and "along their tracks only" not in err
 
 
 def _run_bad(d, scan_name, capsys, *extra, manifest="p.manifest.json"):
