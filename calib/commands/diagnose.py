@@ -18,6 +18,9 @@ def add_parser(subparsers):
     p.add_argument("--model", required=True, metavar="SPEC", help="the model to diagnose, e.g. pa")
     p.add_argument("--effects", metavar="FILE.py",
                    help="a Python file with your own Effect classes; they become candidates too")
+    p.add_argument("--candidates", metavar="A,B,...",
+                   help="try only these library effects (default: every one not in the model); "
+                        "effects from --effects are always tried")
     p.add_argument("--confirm", type=int, default=0, metavar="N",
                    help="confirm the N best candidates with a full fit (emcee run to "
                         "convergence + PSIS-LOO)")
@@ -34,17 +37,17 @@ def run(args) -> int:
     from calib.errors import UserError
     from fit.compare import observe
     from fit.diagnose import diagnose
-    from fit.effects import REGISTRY
     from fit.model import build_model
 
     if args.confirm < 0:
         raise UserError("--confirm must be 0 or more")
     manifest, table, extra = load_inputs(args.widths, args.manifest, args.effects)
     build_model(args.model, manifest.printer, extra_effects=extra)  # bad spec -> one line
+    library = library_candidates(args.candidates)
     obs = observe(manifest, table)
     eff = f" --effects {args.effects}" if args.effects else ""
     d = diagnose(obs, args.model, lambda s: build_model(s, manifest.printer, extra_effects=extra),
-                 list(REGISTRY), [c.name for c in extra], confirm_top=args.confirm,
+                 library, [c.name for c in extra], confirm_top=args.confirm,
                  seed=args.seed, progress=sys.stderr.isatty(),
                  command_prefix=f"calib fit {args.widths} --manifest {args.manifest}", effects_arg=eff)
     doc = d.to_json()
@@ -62,6 +65,24 @@ def run(args) -> int:
         for path in plot_covariates(d, args.plots):
             print(f"wrote {path}", file=sys.stderr)
     return 0
+
+
+def library_candidates(arg: str | None) -> list[str]:
+    """The library effects ``--candidates A,B,...`` names (every one when None); an unknown
+    name is a UserError listing the known ones."""
+    from calib.errors import UserError
+    from fit.effects import REGISTRY
+
+    if arg is None:
+        return list(REGISTRY)
+    names = [n.strip() for n in arg.split(",") if n.strip()]
+    unknown = [n for n in names if n not in REGISTRY]
+    if unknown:
+        raise UserError(f"--candidates: unknown library effect(s) {', '.join(map(repr, unknown))}; "
+                        f"known: {', '.join(REGISTRY)}")
+    if not names:
+        raise UserError("--candidates names no effect")
+    return names
 
 
 def format_diagnosis(doc: dict) -> str:

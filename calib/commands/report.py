@@ -27,6 +27,8 @@ def add_parser(subparsers):
                    help="compare these models now (needs --widths and --manifest)")
     p.add_argument("--model", metavar="SPEC", help="diagnose this model now (needs --widths, --manifest)")
     p.add_argument("--effects", metavar="FILE.py", help="your own Effect classes")
+    p.add_argument("--candidates", metavar="A,B,...",
+                   help="with --model: try only these library effects (default: every one not in the model)")
     p.add_argument("--full", action="store_true", help="full fits (emcee, PSIS-LOO, corner plots)")
     p.add_argument("--title", default="calib report", help="report title")
     p.add_argument("-o", "--output", required=True, metavar="report.html", help="the HTML file")
@@ -74,10 +76,10 @@ def run(args) -> int:
             if compare_doc is None:
                 compare_doc = comparison.to_json()
         if args.model:
+            from calib.commands.diagnose import library_candidates
             from fit.diagnose import diagnose
-            from fit.effects import REGISTRY
             eff = f" --effects {args.effects}" if args.effects else ""
-            diagnosis = diagnose(obs, args.model, build, list(REGISTRY), [c.name for c in extra],
+            diagnosis = diagnose(obs, args.model, build, library_candidates(args.candidates), [c.name for c in extra],
                                  command_prefix=f"calib fit {args.widths} --manifest {args.manifest}",
                                  effects_arg=eff)
             diagnose_doc = diagnosis.to_json()
