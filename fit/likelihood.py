@@ -83,6 +83,18 @@ Until the measurement is fixed the wider one-wobble intervals are the honest one
 may be absent), and the long length starts at 5 x its length so that the two cannot
 trade places (with one 0.6 mm wobble in the data they did, and the sampler wandered).
 
+Why the long wobble is shorter than a track (issue #11 item 4). Since every track starts
+from the stationary state, a wobble much longer than the tracks is, on each track, one
+free offset of sd sigma_extra: it then holds whatever differs from track to track, and
+on a probe whose tracks differ in speed, width or the pause before them that is the
+effect to be found. On the foreign printer's probe (60 mm tracks, delayed thermal ooze,
+rendered and measured) `pa+scan_bias` put a 44 um wobble at the prior's 50 mm bound and
+`+thermal` gained nothing (misfit 26); with the length at most a quarter of the track
+(``corr_max_track_share``, :func:`corr_prior_of`) the base reads chi2_nu 21 and thermal
+is named at Delta BIC 124 (misfit 2.1). A quarter still lets a track's mean wander
+(its variance sigma^2 2 ell / L) but no longer for free. A single long track (the spiral)
+is not bounded by it: the prior's own 50 mm is shorter than a quarter of it.
+
 The first sample of every track (and every new scan) starts from the stationary state
 (phi = 0 across a track start), so the sum is the exact joint log-likelihood, not a
 conditional one. Optionally the standardised innovation v / sqrt(F) is Student-t(nu)
@@ -189,6 +201,9 @@ class NoiseOptions:
     missing_false_rate: float = MISSING_FALSE_RATE
     sigma_prior: Prior = field(default_factory=lambda: Prior("loguniform", 1e-4, 0.5))
     corr_prior: Prior = field(default_factory=lambda: Prior("loguniform", 0.02, 50.0))
+    # the long wobble's length at most this share of the scan's typical track (module
+    # docstring, "Why the long wobble is shorter than a track"); None: corr_prior's bound
+    corr_max_track_share: float | None = 0.25
     # uniform, not log-uniform: when the data hold no short wobble its sd goes to 0, and a
     # log-uniform prior would leave the walkers a flat valley of several decades below
     # the measurement's own sd to wander in
@@ -367,6 +382,35 @@ def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, c_ref, ell, sig_s, el
 _AR1_SERIAL, _AR1_PARALLEL = serial_and_parallel(_ar1_loglik_rows)
 
 
+def track_span_mm(sc) -> float:
+    """Length (mm) of the track a typical valid station of ``sc`` lies on: the median over
+    stations of their track's measured extent (max s - min s of its valid stations)."""
+    tr, s = np.asarray(sc.track_valid), np.asarray(sc.table.s_mm, dtype=float)[sc.order]
+    if len(tr) == 0:
+        return float("nan")
+    ids, inv = np.unique(tr, return_inverse=True)
+    lo = np.full(len(ids), np.inf)
+    hi = np.full(len(ids), -np.inf)
+    np.minimum.at(lo, inv, s)
+    np.maximum.at(hi, inv, s)
+    return float(np.median((hi - lo)[inv]))
+
+
+def corr_prior_of(sc, noise: "NoiseOptions") -> Prior:
+    """The long wobble's prior on one scan: ``noise.corr_prior``, starting at
+    LONG_MIN_FACTOR x the short length with ``short``, and ending at
+    ``corr_max_track_share`` x the scan's track span (track_span_mm) when that is shorter
+    (never below twice the start)."""
+    p = noise.corr_prior
+    lower = max(p.lower, LONG_MIN_FACTOR * noise.short_corr_mm) if noise.short else p.lower
+    upper = p.upper
+    if noise.corr_max_track_share is not None:
+        span = track_span_mm(sc)
+        if np.isfinite(span) and span > 0:
+            upper = min(upper, max(2.0 * lower, noise.corr_max_track_share * span))
+    return replace(p, lower=lower, upper=upper)
+
+
 def ar1_phi(gap_mm: np.ndarray, corr_len_mm) -> np.ndarray:
     """phi_i = exp(-gap_i / ell); gap = inf at a track start gives 0. Shapes (n,), (n_sets, 1)."""
     return np.exp(-gap_mm[None, :] / np.asarray(corr_len_mm))
@@ -475,8 +519,7 @@ class JointProblem:
                 # two components of one length are one component with two names, and the
                 # walkers then wander between them (a toy fit with a single 0.6 mm wobble
                 # did not converge in 6000 steps)
-                priors[CORR_NAME + suffix] = replace(noise.corr_prior, lower=max(
-                    noise.corr_prior.lower, LONG_MIN_FACTOR * noise.short_corr_mm)) if noise.short else noise.corr_prior
+                priors[CORR_NAME + suffix] = corr_prior_of(sc, noise)
                 if noise.short:
                     i_short = len(names)
                     names.append(SHORT_NAME + suffix)

@@ -170,6 +170,28 @@ def test_ar1_gap_uses_rho_to_the_power_of_the_gap():
     assert ll.sum() == pytest.approx(exact, rel=1e-10)
 
 
+def test_long_wobble_is_bounded_by_a_quarter_of_the_track():
+    """A wobble longer than the tracks is a free offset per track (fit/likelihood.py, "Why
+    the long wobble is shorter than a track"): its length's prior ends at a quarter of the
+    typical track's span, never below twice its start, and a long track keeps 50 mm."""
+    from fit.likelihood import CORR_NAME, corr_prior_of, track_span_mm
+
+    def upper(n_per, **kw):
+        sc = make_scan(n_per=n_per)
+        noise = NoiseOptions(**kw)
+        pb = JointProblem([sc], [ToyModel()], noise)
+        p = pb.priors[pb.param_names.index(CORR_NAME)]
+        assert p == corr_prior_of(sc, noise)
+        return track_span_mm(sc), p.lower, p.upper
+
+    assert upper(241) == pytest.approx((60.0, 0.02, 15.0))
+    assert upper(241, corr_max_track_share=None)[2] == 50.0
+    assert upper(241, short=True)[1:] == pytest.approx((2.0, 15.0))
+    assert upper(1201)[2] == 50.0                       # 300 mm: the prior's own bound
+    assert upper(20)[2] == pytest.approx(4.75 / 4)
+    assert upper(20, short=True)[1:] == pytest.approx((2.0, 4.0))
+
+
 def test_student_t_pointwise_matches_scipy():
     r = np.array([0.01, -0.3, 0.002])
     ll = pointwise_loglik(r[None], np.full(3, 0.02), 0.0, None, student_nu=4)
