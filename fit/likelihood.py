@@ -91,7 +91,9 @@ effect to be found. On the foreign printer's probe (60 mm tracks, delayed therma
 rendered and measured) `pa+scan_bias` put a 44 um wobble at the prior's 50 mm bound and
 `+thermal` gained nothing (misfit 26); with the length at most a quarter of the track
 (``corr_max_track_share``, :func:`corr_prior_of`) the base reads chi2_nu 21 and thermal
-is named at Delta BIC 124 (misfit 2.1). A quarter still lets a track's mean wander
+is named at Delta BIC 124, misfit 2.1 (bench_discover_foreign, `spread` added first: 37,
+129, 2.1). On the realdata SpStartStopTest2 the same bound took `pa+backpressure`'s RMS
+from 0.34 to 0.12 mm: the misfit moved out of the noise into the residuals (README). A quarter still lets a track's mean wander
 (its variance sigma^2 2 ell / L) but no longer for free. A single long track (the spiral)
 is not bounded by it: the prior's own 50 mm is shorter than a quarter of it.
 
@@ -385,7 +387,7 @@ _AR1_SERIAL, _AR1_PARALLEL = serial_and_parallel(_ar1_loglik_rows)
 def track_span_mm(sc) -> float:
     """Length (mm) of the track a typical valid station of ``sc`` lies on: the median over
     stations of their track's measured extent (max s - min s of its valid stations)."""
-    tr, s = np.asarray(sc.track_valid), np.asarray(sc.table.s_mm, dtype=float)[sc.order]
+    tr, s = np.asarray(sc.track_valid), np.asarray(sc.s_valid_mm, dtype=float)
     if len(tr) == 0:
         return float("nan")
     ids, inv = np.unique(tr, return_inverse=True)
