@@ -9,6 +9,8 @@ measurement noise, fit `pa`, diagnose. Scored:
 - where the best candidate leaves chi2_nu > 1.5 (no library form fits), whether the
   verdict says so and the covariate it names is a right one (foreign_printer.
   RIGHT_COVARIATES); a verdict that names none (nothing lines up beyond chance) is not.
+  On the rendered cases also where it leaves > 1.5 with the bead's wobble allowed too
+  (fit/diagnose.py NO_FIT_CHI2: a right model reads 1.0-2.1 there without it).
 
 Targets (issue 11): named >= 80 % where a library family exists; "says so with the right
 covariate" >= 80 % of the cases where no library form fits.
@@ -29,7 +31,8 @@ import sys
 import numpy as np
 
 from bench.common import Row
-from bench.foreign_printer import FAMILY, FOREIGN, RIGHT_COVARIATES, make_foreign_case, render_foreign_case
+from bench.foreign_printer import (FAMILY, FOREIGN, RIGHT_COVARIATES, RIGHT_MODEL, make_foreign_case,
+                                   render_foreign_case)
 
 #: Six: the covariate rules of fit/diagnose.py were shaped on seeds 0-2 (10 of 10 right
 #: there); seeds 3-5 are their held-out check (6 of 10), and the bench reports both.
@@ -84,12 +87,16 @@ def one(hidden: str, seed: int, rendered: bool = False) -> dict:
     cov = d.named_covariate        # "" when the verdict names none (nothing beyond chance)
     says_no_fit = ("explains only part" in d.verdict or "No effect in the library" in d.verdict
                    or "No missing effect" in d.verdict)
-    r = {"hidden": hidden, "seed": seed, "top": top.effect, "model": d.model, "named": top.effect in FAMILY[hidden],
-         "named_or_tied": bool({top.effect, *d.tied} & FAMILY[hidden]),
+    fam = FAMILY.get(hidden, set())
+    r = {"hidden": hidden, "seed": seed, "top": top.effect, "model": d.model, "named": top.effect in fam,
+         "named_or_tied": bool({top.effect, *d.tied} & fam), "best": d.best,
          "chi2_before": d.base.chi2_nu, "chi2_after": top.chi2_nu_after, "cov": cov,
          "bead_before": d.base.chi2_nu_bead, "bead_after": top.chi2_nu_bead_after,
          "expected": d.chi2_nu_expected, "misfit_after": top.misfit_after,
-         "cov_right": cov in RIGHT_COVARIATES[hidden], "says_no_fit": says_no_fit,
+         "misfit_bead_after": top.misfit_bead_after,
+         "cov_right": cov in RIGHT_COVARIATES.get(hidden, set()), "says_no_fit": says_no_fit,
+         # a misfit called (something is missing that the library does not have)
+         "says_misfit": "explains only part" in d.verdict or "No effect in the library" in d.verdict,
          "size": c.effect_rms_mm / c.noise_mm, "figures": getattr(c, "figures", None),
          # a geometric best candidate is weighed against the picture's own pattern (view_xy)
          "picture_caution": "Caution: the picture" in d.verdict}
@@ -106,7 +113,8 @@ def run() -> list[Row]:
     res = [one(h, s) for h in FOREIGN for s in range(SEEDS)]
     rows = _white_rows(res)
     if RENDERED_SEEDS > 0:
-        rows += _rendered_rows([one(h, s, rendered=True) for h in FOREIGN for s in range(RENDERED_SEEDS)])
+        rows += _rendered_rows([one(h, s, rendered=True) for h in [*FOREIGN, RIGHT_MODEL]
+                                for s in range(RENDERED_SEEDS)])
     return rows
 
 
@@ -115,6 +123,8 @@ def _rendered_rows(res: list[dict]) -> list[Row]:
     as diagnose judges them on measured widths: chi2_nu over what a right model reads from
     the measurement alone (fit/measurement.py chi2_nu_expected, ~5 on these renders)."""
     tag = "discover (foreign, rendered)"
+    right = [r for r in res if r["hidden"] == RIGHT_MODEL]
+    res = [r for r in res if r["hidden"] != RIGHT_MODEL]
     fig = [r["figures"] for r in res]
     rows = [Row(tag, f"measured widths ({len(res)} prints, 600 dpi flatbed, every phenomenon, pose from "
                      f"8 points of the true camera): RMS / bias (median), valid "
@@ -137,6 +147,20 @@ def _rendered_rows(res: list[dict]) -> list[Row]:
         share = np.mean([r["says_no_fit"] and r["cov_right"] for r in nofit])
         rows.append(Row(tag, f"no library form fits (chi2_nu after / expected > {NO_FIT_CHI2}, {len(nofit)} cases): "
                         "says so and names a right covariate", 100 * share, "%", ">= 80", bool(share >= 0.8)))
+    # a right model reads chi2_nu 1.0-2.1 times chi2_nu_expected on these renders (the
+    # bead's slow wander: fit/diagnose.py NO_FIT_CHI2), so the row above counts right
+    # forms; with the bead's wobble allowed as well (what diagnose and the trust verdict judge)
+    both = [r for r in nofit if not r["misfit_bead_after"] <= NO_FIT_CHI2]
+    if both:
+        share = np.mean([r["says_no_fit"] and r["cov_right"] for r in both])
+        rows.append(Row(tag, f"... and > {NO_FIT_CHI2} with the bead's wobble allowed too ({len(both)} cases): "
+                        "says so and names a right covariate", 100 * share, "%", ">= 80", bool(share >= 0.8)))
+    if right:
+        # the false-alarm side: a print with nothing hidden, measured the same way
+        rows.append(Row(tag, f"a right model (the foreign plain spring, {len(right)} seeds; named: "
+                        f"{', '.join(r['best'] or '-' for r in right)}): no effect supported, and no "
+                        "'no library form fits'", 100 * np.mean([r["best"] is None and not r["says_misfit"]
+                                                                 for r in right]), "%", "-", None))
     return rows
 
 

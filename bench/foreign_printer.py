@@ -58,6 +58,9 @@ FOREIGN = {
     "bed": {"c_per_mm2": 6e-5},
     "gear_slip": {"k_per_mm": 0.12},
 }
+#: a case with no hidden effect: the foreign printer's plain spring, the probe's right model
+#: being `pa` (what diagnose says of a right model; not in FOREIGN)
+RIGHT_MODEL = "none"
 #: library effects that count as naming the foreign effect
 FAMILY = {
     "thermal": {"thermal"},
@@ -196,7 +199,8 @@ def simulate(manifest, tau_s: float, hidden: str | None, p: dict | None = None,
 
 def _draw(hidden: str, seed: int):
     """(rng, probe manifest, tau_s, effect parameters) of a case: tau 0.35 s x lognormal(0.2),
-    the effect's parameters within +-20 % of FOREIGN's."""
+    the effect's parameters within +-20 % of FOREIGN's (none for RIGHT_MODEL: the plain
+    spring, dP/dt = ve - P / tau, which `pa` describes)."""
     from fit.hidden import probe_manifest
 
     rng = np.random.default_rng(seed)
@@ -205,7 +209,7 @@ def _draw(hidden: str, seed: int):
     # real print's starting state is known either; its purge line sets it
     man = probe_manifest(prime_mm=PRIME_MM)
     tau = 0.35 * float(np.exp(0.2 * rng.standard_normal()))
-    p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN[hidden].items()}
+    p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN.get(hidden, {}).items()}
     return rng, man, tau, p
 
 
