@@ -46,6 +46,8 @@ TICK_FAMILY = 8
 TICK_MAX_MM = 8.0
 TICK_TURN_DEG = 5.0
 TICK_TOL_MM = 0.05
+#: A tick stands on a line when an end of it lies within half the two widths plus this (mm).
+TICK_TOUCH_MM = 0.1
 
 
 def manifest_from_gcode(text, profile, pattern: dict | None = None, *,
@@ -120,14 +122,21 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
     pat = dict(pattern) if pattern is not None else {"name": "gcode"}
     pat.setdefault("planned_duration_s", round(mp.total_time_s, 3))
     pat.setdefault("labelled", bool(pr.labelled))      # our ;TRACK labels: kinds are known
-    for tr in tracks:      # one line per implausible commanded bead (usually a wrong h)
-        w = np.asarray(tr.width_mm, dtype=float)
-        w = w[w > 0]
-        d = prof.nozzle_diameter_mm
-        if w.size and (np.median(w) > 4 * d or np.median(w) < 0.5 * d):
-            warnings.append(f"track {tr.id}: commanded width {np.median(w):.2f} mm is implausible for a "
-                            f"{d:g} mm nozzle (height {np.median(tr.height_mm):.3f} mm); check the "
-                            "layer height (--layer-height)")
+    odd = []      # implausible commanded beads (usually a wrong h)
+    d = prof.nozzle_diameter_mm
+    for tr in tracks:
+        w = _typical_width_mm(tr)
+        if np.isfinite(w) and (w > 4 * d or w < 0.5 * d):
+            odd.append((tr.id, w, float(np.median(tr.height_mm))))
+    if len(odd) == 1:
+        tid, w, h = odd[0]
+        warnings.append(f"track {tid}: commanded width {w:.2f} mm is implausible for a {d:g} mm nozzle "
+                        f"(height {h:.3f} mm); check the layer height (--layer-height)")
+    elif odd:
+        ws, hs = [o[1] for o in odd], [o[2] for o in odd]
+        warnings.append(f"{len(odd)} tracks have commanded widths implausible for a {d:g} mm nozzle "
+                        f"({min(ws):.2f}-{max(ws):.2f} mm at heights {min(hs):.3f}-{max(hs):.3f} mm): "
+                        f"{_id_ranges([o[0] for o in odd])}; check the layer height (--layer-height)")
     if warnings:
         pat.setdefault("warnings", warnings)
     if pr.pa_events:
@@ -137,6 +146,25 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
              "k_s": e.k_s, "smooth_time_s": e.smooth_time_s, "line": e.line}
             for e in pr.pa_events])
     return Manifest(printer=prof.to_dict(), pattern=pat, tracks=tracks, timeline=tl)
+
+
+def _typical_width_mm(tr: Track) -> float:
+    """The commanded width (mm) over most of a track's length: the length-weighted median
+    of its segments' widths (``width_mm[k]`` is the segment ending at point k). A test
+    line of StartStopTestPLA1 restores its pressure over its first 1 mm at 50x the flow
+    (a 42 mm "bead") and runs 14 mm at 0.41 mm: the median of its four points read 21 mm."""
+    p = np.asarray(tr.points_mm, dtype=float)
+    w = np.asarray(tr.width_mm, dtype=float)
+    if len(p) < 2:
+        return float(np.median(w)) if w.size else float("nan")
+    L = np.hypot(*np.diff(p, axis=0).T)
+    w = w[1:]
+    ok = (w > 0) & (L > 0)
+    if not ok.any():
+        return float("nan")
+    order = np.argsort(w[ok])
+    cum = np.cumsum(L[ok][order])
+    return float(w[ok][order][np.searchsorted(cum, 0.5 * cum[-1])])
 
 
 #: grid of the top-surface map (mm)
@@ -237,7 +265,9 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
     text: list[int] = []
     text_ids = _label_strokes(manifest) if auto_exclude and ids is None else set()
     tick_ids = _tick_strokes(manifest) if auto_exclude and ids is None else set()
+    base_ids = _ruler_lines(manifest, tick_ids) if tick_ids else set()
     ticks: list[int] = []
+    bases: list[int] = []
     prof = manifest.printer
     (x0, x1), (y0, y1) = prof.get("bed_x_mm", (-1e9, 1e9)), prof.get("bed_y_mm", (-1e9, 1e9))
     first = min((t.id for t in manifest.tracks), default=None)
@@ -272,6 +302,10 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
                 t.kind = "other"
                 ticks.append(t.id)
                 continue
+            if t.id in base_ids:
+                t.kind = "other"
+                bases.append(t.id)
+                continue
         if why:
             t.kind = "other"
         elif ids is not None or z_range_mm is not None:
@@ -282,6 +316,11 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
     if ticks:
         notes.append(f"{len(ticks)} tracks are ruler or dial ticks (>= {TICK_FAMILY} straight strokes of one "
                      f"length <= {TICK_MAX_MM:g} mm), not test lines: {_id_ranges(ticks)}; --tracks to override")
+    if bases:
+        what = (f"track {bases[0]} is the line" if len(bases) == 1 else
+                f"{len(bases)} tracks are the lines")
+        notes.append(f"{what} ruler ticks stand on (>= {TICK_FAMILY} ticks touch each), not test lines: "
+                     f"{_id_ranges(bases)}; --tracks to override")
     if not manifest.test_tracks():
         notes.append("no test track left: check --tracks / --z-range-mm")
     return notes
@@ -350,6 +389,40 @@ def _tick_strokes(manifest: Manifest) -> set[int]:
         family = [c for c in cand if abs(c[1] - length) <= TICK_TOL_MM and abs(c[2] - w) <= TICK_TOL_MM]
         if len(family) >= TICK_FAMILY:
             out.add(tid)
+    return out
+
+
+def _ruler_lines(manifest: Manifest, tick_ids: set[int]) -> set[int]:
+    """Ids of the test tracks that at least TICK_FAMILY of the ticks ``tick_ids`` touch (an
+    end within a tick's width plus TICK_TOUCH_MM of the track's centre line: a ruler's line
+    is drawn like its ticks, and a track's own commanded width can be a blob's, 42 mm over
+    the 1 mm a test line restores its pressure in): a ruler's base line. StartStopTestPLA1 draws each block's ruler as a 90 mm line with 44
+    ticks standing on it; measured as a test line, 82 % of its stations were flagged
+    `crossing` (the ticks every 2 mm), 1180 of the print's 2200."""
+    from scipy.spatial import cKDTree
+
+    ends = []
+    for t in manifest.tracks:
+        if t.id in tick_ids:
+            pts = np.asarray(t.points_mm, dtype=float)
+            w = float(np.median(np.asarray(t.width_mm, dtype=float)))
+            ends += [(pts[0], w), (pts[-1], w)]
+    if not ends:
+        return set()
+    xy = np.array([e[0] for e in ends])
+    wt = np.array([e[1] for e in ends])
+    out = set()
+    for t in manifest.test_tracks():
+        if t.id in tick_ids or t.length_mm <= TICK_MAX_MM:
+            continue
+        s = np.linspace(0.0, t.length_mm, max(2, int(t.length_mm / 0.1) + 1))
+        line = np.asarray(t.at(s)[0], dtype=float)
+        d, _ = cKDTree(line).query(xy)
+        touch = d <= wt + TICK_TOUCH_MM
+        # a tick touches with one end; count ticks, not ends
+        n_ticks = int(np.sum(touch.reshape(-1, 2).any(axis=1)))
+        if n_ticks >= TICK_FAMILY:
+            out.add(t.id)
     return out
 
 

@@ -297,3 +297,34 @@ def test_plan_leaves_ruler_and_dial_ticks_out_of_the_test(tmp_path, capsys):
     assert "19 tracks are ruler or dial ticks" in err
     assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--keep-all"]) == 0
     assert sum(t.kind == "test" for t in Manifest.load(out).tracks) == 30
+
+
+def test_plan_leaves_a_rulers_base_line_out_and_reads_a_lines_width_over_its_length(tmp_path, capsys):
+    """StartStopTestPLA1 draws each ruler as a 90 mm line with its ticks standing on it: the
+    line is the ruler's, not a test line (1180 of the print's 2200 `crossing` stations were
+    on four of them). A test line whose first 1 mm restores the pressure at 30x the flow
+    (the same print) has the commanded width of the rest; over-wide lines all through get
+    one warning line for all of them."""
+    from calib.cli import main
+
+    g = ["G21", "G90", "M83", "G28", "G0 Z0.2 F600"]
+    g += ["G0 X45 Y30", "G1 X105 Y30 E3 F1200"]                          # 0: the ruler's line
+    for k in range(12):                                                   # 1-12: ticks on it
+        g += [f"G0 X{50 + 5 * k} Y30", f"G1 X{50 + 5 * k} Y34 E0.2 F1200"]
+    g += ["G0 X45 Y36", "G1 X105 Y36 E3 F1200"]                           # 13: tick ends 2 mm off
+    g += ["G0 X50 Y50", "G1 X51 Y50 E1.5 F60", "G1 X65 Y50 E0.7 F1200"]  # 14: restore blob, then the line
+    for y in (70, 80):                                                    # 15, 16: 9 mm "beads"
+        g += [f"G0 X50 Y{y}", f"G1 X100 Y{y} E40 F1200"]
+    src = tmp_path / "ruler_line.gcode"
+    src.write_text("\n".join(g) + "\n")
+    out = tmp_path / "m.json"
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    tracks = Manifest.load(out).tracks
+    assert [t.id for t in tracks if t.kind == "test"] == [13, 14, 15, 16]
+    assert "track 0 is the line ruler ticks stand on (>= 8 ticks touch each), not test lines: 0;" in err
+    assert "track 14" not in err                                          # 0.42 mm over 14 of its 15 mm
+    lines = [ln for ln in err.splitlines() if "implausible" in ln]
+    assert len(lines) == 1 and lines[0].count("2 tracks have commanded widths") == 1 and "15-16" in lines[0]
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks", "0,13"]) == 0
+    assert [t.id for t in Manifest.load(out).tracks if t.kind == "test"] == [0, 13]
