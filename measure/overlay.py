@@ -32,13 +32,17 @@ def draw_overlay(color, manifest, registration, measurement, max_side_px: int = 
     out = (out.astype(np.float32) * 0.75).astype(np.uint8)
     sc = lambda uv: np.round(uv * k * 16).astype(np.int32)     # 4 fractional bits for LINE_AA
 
+    nozzle = float((manifest.printer or {}).get("nozzle_diameter_mm", 0.4))
     for tr in manifest.tracks:
         if tr.kind != "test" or tr.length_mm <= 0:
             continue
         s = np.linspace(0, tr.length_mm, max(2, int(tr.length_mm / 0.5) + 1))
         pos, tan = tr.at(s)
         nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
-        hw = tr.interp("width_mm", s)[:, None] / 2
+        # a commanded "bead" wider than 4 nozzles is a blob (a third-party test restoring its
+        # pressure over 1 mm at 50x the flow reads 42 mm): drawn at full width it crossed
+        # the whole picture as two lines
+        hw = np.minimum(tr.interp("width_mm", s), 4 * nozzle)[:, None] / 2
         for side in (-1, 1):
             uv = registration.project(pos + side * hw * nrm)
             cv2.polylines(out, [sc(uv).reshape(-1, 1, 2)], False, YELLOW, 1, cv2.LINE_AA, shift=4)

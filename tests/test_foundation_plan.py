@@ -265,6 +265,16 @@ def test_plan_leaves_printed_labels_out_of_the_test(tmp_path, capsys):
     assert sum(t.kind == "test" for t in Manifest.load(out).tracks) > 3
 
 
+def _plan(tmp_path, capsys, lines):
+    """`calib plan` of G-code ``lines`` on the ender3: (tracks, stderr, G-code path, manifest path)."""
+    from calib.cli import main
+
+    src, out = tmp_path / "test.gcode", tmp_path / "m.json"
+    src.write_text("\n".join(lines) + "\n")
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out)]) == 0
+    return Manifest.load(out).tracks, capsys.readouterr().err, src, out
+
+
 def test_plan_leaves_ruler_and_dial_ticks_out_of_the_test(tmp_path, capsys):
     """A third-party test with a ruler (9 ticks of 4 mm and 3 of 6 mm, as StartStopTestPLA1
     has 44 + 44) and a dial (10 radial ticks of 3.5 mm, as SpStartStopTest2 has 24 of 3): the ticks
@@ -284,12 +294,7 @@ def test_plan_leaves_ruler_and_dial_ticks_out_of_the_test(tmp_path, capsys):
         g += [f"G0 X{p[0]:.3f} Y{p[1]:.3f}", f"G1 X{q[0]:.3f} Y{q[1]:.3f} E0.175 F1200"]
     for k, length in enumerate((3.9, 4.3, 4.7, 5.1, 5.5, 5.9)):            # warm-up strokes
         g += [f"G0 X{60 + 10 * k} Y80", f"G1 X{60 + 10 * k + length:.2f} Y80 E{0.05 * length:.3f} F300"]
-    src = tmp_path / "ruler.gcode"
-    src.write_text("\n".join(g) + "\n")
-    out = tmp_path / "m.json"
-    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out)]) == 0
-    err = capsys.readouterr().err
-    tracks = Manifest.load(out).tracks
+    tracks, err, src, out = _plan(tmp_path, capsys, g)
     test = [t.id for t in tracks if t.kind == "test"]
     # 0, 1 the lines; 2-13 the ruler (two of its 6 mm ticks, a family of 3, stay); 14-23
     # the dial; 24-29 the warm-up strokes
@@ -315,12 +320,7 @@ def test_plan_leaves_a_rulers_base_line_out_and_reads_a_lines_width_over_its_len
     g += ["G0 X50 Y50", "G1 X51 Y50 E1.5 F60", "G1 X65 Y50 E0.7 F1200"]  # 14: restore blob, then the line
     for y in (70, 80):                                                    # 15, 16: 9 mm "beads"
         g += [f"G0 X50 Y{y}", f"G1 X100 Y{y} E40 F1200"]
-    src = tmp_path / "ruler_line.gcode"
-    src.write_text("\n".join(g) + "\n")
-    out = tmp_path / "m.json"
-    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out)]) == 0
-    err = capsys.readouterr().err
-    tracks = Manifest.load(out).tracks
+    tracks, err, src, out = _plan(tmp_path, capsys, g)
     assert [t.id for t in tracks if t.kind == "test"] == [13, 14, 15, 16]
     assert "track 0 is the line ruler ticks stand on (>= 8 ticks touch each), not test lines: 0;" in err
     assert "track 14" not in err                                          # 0.42 mm over 14 of its 15 mm
