@@ -91,26 +91,22 @@ TIE_DELTA_BIC = 2.0
 #: Reduced chi-square left by the best candidate above which it "explains only part"
 #: (issue #11: "where no library form fits, chi2_nu > 1.5 after"), in units of what a right
 #: model reads from the measurement alone (Candidate.misfit_after; 1 for white noise of
-#: known sd, 1.8-3.5 on the rendered foreign probe prints, bench_discover_foreign). The
-#: covariates are then scored again
-#: on what that candidate leaves, and the verdict names that one. Not chi2_nu_bead (the
-#: trust verdict's, with a bead wobble of 2 % of the width allowed): on the white-noise
-#: foreign prints the gear slip left chi2_nu 1.55-1.88 after thermal, its leftover lined up
-#: with the advance at p 0.01, and chi2_nu_bead read 1.03-1.27.
-NO_FIT_CHI2 = 1.5
-#: ... and measured widths must also leave more than NO_FIT_CHI2 of what the measurement
-#: gives a right model *with the bead's own wobble allowed* (chi2_nu_bead over
-#: fit/measurement.py scatter's chi2_nu_bead_expected: what the trust verdict judges). A
+#: known sd, 1.8-3.5 on the rendered foreign probe prints, bench_discover_foreign); and
+#: measured widths must also leave more than this of what a right model reads *with the
+#: bead's own wobble allowed* (Candidate.misfit_bead_after: chi2_nu_bead over
+#: fit/measurement.py scatter's chi2_nu_bead_expected, what the trust verdict judges). A
 #: bead wanders slowly (1-2 % of its width over ~20 mm), each track by ~5 um on a 0.45 mm
-#: bead, comparable to a station's sd; chi2_nu_expected does not hold it. On the foreign
-#: probe rendered on a 600 dpi flatbed (bench_discover_foreign, seeds 0-1), the plain
-#: foreign spring fitted with `pa+scan_bias` read chi2_nu 1.0-2.1 times chi2_nu_expected,
-#: the library's 1/x flow on the foreign logarithmic one 1.7 (a right form), back-pressure
-#: 5.4-5.6, backlash 6.0-7.5; with the wobble allowed: 0.65-1.04, 0.80-0.93, 2.7-3.1,
-#: 3.4-4.0. On white noise of known sd both read the same side of the bar except where
-#: a small misfit is structured (the foreign gear slip: chi2_nu 1.6-1.8, with the wobble
-#: 1.07-1.23), which the leftover's structure catches (:func:`leaves_a_misfit`).
-#: Where no chi2_nu_bead was computed (older fits), chi2_nu alone decides.
+#: bead, comparable to a station's sd, and chi2_nu_expected does not hold it. On the
+#: foreign probe rendered on a 600 dpi flatbed (seeds 0-1) the plain foreign spring fitted
+#: with `pa+scan_bias` read chi2_nu 1.0-2.1 times chi2_nu_expected, the library's 1/x flow
+#: on the foreign logarithmic one 1.7 (a right form), back-pressure 5.4-5.6, backlash
+#: 6.0-7.5; with the wobble allowed 0.65-1.04, 0.80-0.93, 2.7-3.1, 3.4-4.0. On white noise
+#: of known sd the two agree except on a small misfit: the foreign gear slip left chi2_nu
+#: 1.6-1.8 after thermal (1.07-1.23 with the wobble), and its leftover lined up with the
+#: advance at p 0.01; that structure calls it partial (:func:`leaves_a_misfit`). Where no
+#: chi2_nu_bead was computed (older fits) chi2_nu alone decides. The covariates are scored
+#: again on what the best candidate leaves, and the verdict names one (:func:`_explains_part`).
+NO_FIT_CHI2 = 1.5
 #: Share of the model's misfit beyond the measurement's (chi2_nu - expected) the best
 #: candidate may leave and still be said to describe it: an effect that takes less than
 #: two thirds of it leaves a residual shaped by its own form as much as by what is
@@ -169,8 +165,9 @@ class Candidate:
     #: chi2_nu_bead, what the trust verdict judges); NaN for candidates without it
     chi2_nu_bead_after: float = float("nan")
     #: chi2_nu_after over what a right model reads from the measurement alone
-    #: (fit/measurement.py chi2_nu_expected): the misfit "explains only part" is judged on;
-    #: chi2_nu_after itself when not given (white noise of known sd)
+    #: (fit/measurement.py chi2_nu_expected): the misfit "explains only part" is judged on
+    #: (with misfit_bead_after, NO_FIT_CHI2); chi2_nu_after itself when not given (white
+    #: noise of known sd)
     misfit_after: float = float("nan")
     #: chi2_nu_bead_after over what a right model reads with the bead's wobble allowed
     #: (fit/measurement.py scatter ``chi2_nu_bead_expected``); NaN when not computed
