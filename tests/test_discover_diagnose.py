@@ -452,3 +452,29 @@ def test_covariates_that_score_alike_on_the_base_misfit_are_both_first():
     base[2] = ("last_stop_duration_s", 0.25, 0.02)
     d = _measured(5.64, 2.35, weak, covariates=base, expected=2.48, bead_expected=1.55)
     assert "explains only part" in d.verdict and d.named_covariate == ""
+
+
+def test_a_best_candidate_that_raises_the_misfit_is_not_said_to_lower_it():
+    """The realdata SpStartStopTest2: kalico_tanh won by 142 BIC while RMS rose 156 -> 221 um
+    (reduced chi-square 92 -> 190) and the verdict said "RMS falls"; bed_mesh, 75 BIC,
+    lowered it to 108 um. The verdict says the fit does not improve and names bed_mesh."""
+    from types import SimpleNamespace
+
+    from fit.diagnose import Candidate, Diagnosis, _verdict
+
+    base = SimpleNamespace(rms_mm=0.1561, chi2_nu=92.41, chi2_nu_bead=45.4, n=4451, corr_len_mm=15.0,
+                           n_eff=94.0, bic=0.0)
+    fit = SimpleNamespace(params=lambda: {})
+    cands = [Candidate("kalico_tanh", "pa+kalico_tanh", 142.4, 142.4, 0.2207, 189.78, fit=fit),
+             Candidate("bed_mesh", "pa+bed_mesh", 74.8, 74.8, 0.1083, 53.12, fit=fit),
+             Candidate("spread", "pa+spread", 28.8, 28.8, 0.157, 94.02, fit=fit)]
+    d = Diagnosis(model="pa", base=base, cov=None, candidates=cands, covariates=[])
+    _verdict(d, "calib fit W --manifest M", "")
+    assert d.best == "kalico_tanh" and "RMS falls" not in d.verdict
+    assert "the fit does not improve: RMS goes from 156.1 to 220.7 um" in d.verdict
+    assert "Of the candidates that lower the misfit, bed_mesh does best" in d.verdict
+    assert "calib fit W --manifest M --model pa+bed_mesh" in d.verdict
+    cands[0] = Candidate("kalico_tanh", "pa+kalico_tanh", 142.4, 142.4, 0.1, 40.0, fit=fit)
+    d = Diagnosis(model="pa", base=base, cov=None, candidates=cands, covariates=[])
+    _verdict(d, "calib fit W --manifest M", "")
+    assert "RMS falls from 156.1 to 100.0 um" in d.verdict and "Of the candidates" not in d.verdict
