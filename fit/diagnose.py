@@ -33,8 +33,8 @@ from fit.trust import _bound_problem
 #: scan_bias is the measurement's own calibration error, which a user adds to widen the
 #: intervals (it would soak up any static width-dependent signal of the physics); the
 #: view effects are the picture's (they would soak up bed tilt and heading).
-NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias", "view_xy", "view_heading", "view_glare", "view_blur",
-                            "view_light"})
+NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias", "scan_curve", "view_xy", "view_heading", "view_glare",
+                            "view_blur", "view_light"})
 #: A geometric candidate and the picture's nuisance that widths alone may not tell from
 #: it: a bed whose height varies over its area changes the width (A / h), and so does a
 #: picture whose light, focus or scale varies over its area (the apparent width's edge
@@ -47,6 +47,12 @@ NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias", "view_xy", "view_heading
 #: probe a real bed tilt (2x fit/hidden.py's) read bed_tilt 90, view_xy -11.5: the bed
 #: scales the width through the height (A / h), the picture adds to it.
 PICTURE_TWINS = {"bed_tilt": "view_xy", "bed_mesh": "view_xy"}
+#: ... and the measurement's apparent width bent with the width (fit/effects.py ScanCurve),
+#: fitted first: a bed effect named must still gain SUPPORTED_DELTA_BIC beside it. On the
+#: foreign printer's right `pa` print rendered on a flatbed, `bed_mesh` (Delta BIC 25) had
+#: taken the bent apparent widths (all nine dz +0-0.02 mm with scan_bias's gain 0.006 ->
+#: 0.051); beside scan_curve it gained -1.9. On the rendered bowls it kept 60 and 16.
+CURVE_TWINS = {"bed_tilt": "scan_curve", "bed_mesh": "scan_curve"}
 #: Nuisances of the picture (fit/effects.py ViewXY, ViewHeading, ViewGlare, ViewBlur) the trust
 #: verdict's structure check adds for a geometric covariate (fit/nuisance.py
 #: structure_check); the blur across a bead follows both its place and its direction.
@@ -203,6 +209,9 @@ class Diagnosis:
     tied: list[str] = field(default_factory=list)
     #: the picture's nuisance fitted beside a geometric best candidate (PICTURE_TWINS)
     picture_twin: Candidate | None = None
+    #: (twin, Delta BIC of the best candidate added to model + twin): what a geometric best
+    #: candidate still gains beside the measurement's width curve (CURVE_TWINS)
+    curve_check: tuple[str, float] | None = None
     #: the reduced chi-square a right model reads from the measurement alone
     #: (fit/measurement.py chi2_nu_expected; 1 for white noise of known sd)
     chi2_nu_expected: float = 1.0
@@ -243,6 +252,8 @@ class Diagnosis:
             "picture_twin": ({"effect": self.picture_twin.effect, "delta_bic": num(self.picture_twin.delta_bic),
                               "chi2_nu_after": num(self.picture_twin.chi2_nu_after)}
                              if self.picture_twin is not None else None),
+            "curve_check": ({"twin": self.curve_check[0], "delta_bic_beside": num(self.curve_check[1])}
+                            if self.curve_check is not None else None),
             "best": self.best,
             "verdict": self.verdict,
             "command": self.command,
@@ -336,6 +347,13 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
         diag.picture_twin = Candidate(twin, ext, base.bic - f.bic, base.bic - f.bic, f.rms_mm, f.chi2_nu, fit=f,
                                       chi2_nu_bead_after=f.chi2_nu_bead, misfit_after=f.chi2_nu / expect,
                                       misfit_bead_after=f.chi2_nu_bead / bead_expect)
+    curve = CURVE_TWINS.get(ok[0].effect) if ok and ok[0].delta_bic > SUPPORTED_DELTA_BIC else None
+    if curve is not None and curve in library and curve not in split_spec(spec):
+        with_curve = f"{spec}+{curve}"
+        fc = fit_model(build(with_curve), scan, with_curve, warm=[base], **fit_kw)
+        both = f"{with_curve}+{ok[0].effect}"
+        fb = fit_model(build(both), scan, both, warm=[fc, ok[0].fit], **fit_kw)
+        diag.curve_check = (curve, fc.bic - fb.bic)
     if ok and ok[0].delta_bic > SUPPORTED_DELTA_BIC:
         # what is still missing shows in what the best candidate leaves, not in the base
         # residuals (there the part it does explain dominates the covariate ranking)
@@ -451,6 +469,12 @@ def _verdict(d: Diagnosis, command_prefix: str, effects_arg: str) -> None:
                           "height varies from a picture whose light, focus or scale does. Scan or photograph "
                           "the print again turned 90 deg: a bed effect turns with the print, the picture's "
                           "stays with the camera.")
+        if d.curve_check is not None and d.curve_check[1] < SUPPORTED_DELTA_BIC:
+            d.verdict += (f" Caution: beside the measurement's own width curve ({d.curve_check[0]}: apparent "
+                          f"widths bent with the width) {best.effect} gains only {d.curve_check[1]:.1f} BIC: "
+                          "this can be how the picture reads beads of different widths, not the bed. A width "
+                          "reference on the print (ruler lines of known width) or a scan turned 90 deg tells "
+                          "them apart.")
         if leaves_a_misfit(d, best):
             _explains_part(d, best, top_cov)
     elif (b.chi2_nu / d.chi2_nu_expected > NO_FIT_CHI2

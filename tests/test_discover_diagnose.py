@@ -357,7 +357,7 @@ def test_a_bed_effect_is_weighed_against_the_pictures_own_pattern_over_the_bed()
     for a tilted bed unless the picture's nuisance is fitted beside it; a real tilted bed
     (the height scales the width, A / h) is not taken for the picture."""
     # a few candidates beside the two bed forms keep it fast; the twin needs view_xy there
-    lib = ["bed_tilt", "bed_mesh", "offset", "flow_gain", "thermal", "view_xy"]
+    lib = ["bed_tilt", "bed_mesh", "offset", "flow_gain", "thermal", "view_xy", "scan_curve"]
     # the picture: +-80 um along x, added to a right pa print
     c = make_case("bed_tilt", seed=3, scale=0.0, **FAST)
     tb = c.table
@@ -375,6 +375,9 @@ def test_a_bed_effect_is_weighed_against_the_pictures_own_pattern_over_the_bed()
     assert d.best == "bed_tilt" and d.picture_twin is not None
     assert d.picture_twin.delta_bic < d.candidates[0].delta_bic - 10
     assert "Caution: the picture" not in d.verdict
+    # ... nor for the measurement's width curve: the tilt still gains beside it
+    assert d.curve_check is not None and d.curve_check[0] == "scan_curve" and d.curve_check[1] >= 10
+    assert "Caution: beside" not in d.verdict and d.to_json()["curve_check"]["twin"] == "scan_curve"
 
 
 def test_a_tie_between_the_bed_and_the_picture_is_said():
@@ -478,3 +481,37 @@ def test_a_best_candidate_that_raises_the_misfit_is_not_said_to_lower_it():
     d = Diagnosis(model="pa", base=base, cov=None, candidates=cands, covariates=[])
     _verdict(d, "calib fit W --manifest M", "")
     assert "RMS falls from 156.1 to 100.0 um" in d.verdict and "Of the candidates" not in d.verdict
+
+
+def test_a_bed_effect_that_the_measurements_width_curve_takes_is_cautioned():
+    """The foreign printer's right `pa` print rendered on a flatbed: `bed_mesh` gained 25
+    BIC, and -1.9 beside scan_curve (the apparent width bent with the width); the rendered
+    bowls kept 60 and 16 beside it."""
+    from types import SimpleNamespace
+
+    from fit.diagnose import Candidate, Diagnosis, _verdict
+
+    base = SimpleNamespace(rms_mm=0.015, chi2_nu=5.2, n=801, corr_len_mm=6.4, n_eff=47.0, bic=-4600.0)
+
+    def verdict(beside):
+        d = Diagnosis(model="pa+scan_bias", base=base, covariates=[], cov=None,
+                      candidates=[Candidate("bed_mesh", "pa+scan_bias+bed_mesh", 25.0, 25.0, 0.0128, 2.36)])
+        d.curve_check = ("scan_curve", beside)
+        _verdict(d, "calib fit W --manifest M", "")
+        return d
+
+    d = verdict(-1.9)
+    assert d.best == "bed_mesh" and "Caution: beside the measurement's own width curve (scan_curve" in d.verdict
+    assert "gains only -1.9 BIC" in d.verdict
+    assert "Caution: beside" not in verdict(15.5).verdict
+
+
+def test_scan_curve_bends_the_apparent_width_about_half_a_millimetre():
+    """w + c2 (w - 0.5)^2 + c3 (w - 0.5)^3: 0.5 mm beads unchanged, 0.85 mm by
+    c2 0.1225 + c3 0.042875 mm, 0.4 mm by c2 0.01 - c3 0.001 mm."""
+    from fit.effects import ScanCurve
+
+    w = np.array([[0.4, 0.5, 0.85]])
+    p = {"c2_per_mm": np.array([[-0.1]]), "c3_per_mm2": np.array([[0.14]])}
+    out = ScanCurve().width(None, w, p)
+    assert np.allclose(out, [[0.4 - 0.001 - 0.00014, 0.5, 0.85 - 0.01225 + 0.0060025]], atol=1e-12)
