@@ -165,7 +165,7 @@ LOG2PI = math.log(2.0 * math.pi)
 
 #: Effects whose parameters belong to one scan in a joint fit (each scan has its own
 #: flow multiplier, filament diameter error and bed tilt; the extruder physics is shared).
-NUISANCE_EFFECTS = ("flow_gain", "bed_tilt", "scan_bias", "flow", "tilt", "layer_height",
+NUISANCE_EFFECTS = ("flow_gain", "bed_tilt", "scan_bias", "scan_curve", "flow", "tilt", "layer_height",
                     "filament_diameter")
 
 SIGMA_NAME = "noise.sigma_extra_mm"
