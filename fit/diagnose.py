@@ -567,14 +567,13 @@ def _explains_part(d: Diagnosis, best: Candidate, top_cov: CovariateScore | None
         d.named_covariate = acts_on.name
         weak = (f" (the closest, {left.name}, explains {100 * left.score:.0f} %)"
                 if left is not None and left.score > 0 and left is not top_cov else "")
-        first = ("first" if acts_on is top_cov else
-                 f"about as well with {acts_on.name} as with {top_cov.name} (explains "
-                 f"{100 * acts_on.score:.0f} % against {100 * top_cov.score:.0f} %)")
+        how = (f"first with {acts_on.name}, which {best.effect} acts on, and {best.effect}"
+               if acts_on is top_cov else
+               f"about as well with {acts_on.name} as with {top_cov.name} (explains "
+               f"{100 * acts_on.score:.0f} % against {100 * top_cov.score:.0f} %); {best.effect} acts on "
+               f"{acts_on.name} and")
         d.verdict += (f"{part}, and what it leaves lines up with no covariate strongly{weak}. The "
-                      + (f"misfit of {d.model} lined up first with {acts_on.name}, which {best.effect} acts on, "
-                         f"and {best.effect}" if acts_on is top_cov else
-                         f"misfit of {d.model} lined up {first}; {best.effect} acts on {acts_on.name} and")
-                      + f" took most of it: the effect is there, with another "
+                      f"misfit of {d.model} lined up {how} took most of it: the effect is there, with another "
                       f"shape than {best.effect}'s (a delay, another time course). Write one that "
                       f"depends on {acts_on.name}{write}")
     else:
