@@ -46,7 +46,8 @@ TICK_FAMILY = 8
 TICK_MAX_MM = 8.0
 TICK_TURN_DEG = 5.0
 TICK_TOL_MM = 0.05
-#: A tick stands on a line when an end of it lies within half the two widths plus this (mm).
+#: A tick stands on a line when an end of it lies within the tick's width plus this (mm)
+#: of the line's centre.
 TICK_TOUCH_MM = 0.1
 
 
@@ -396,9 +397,10 @@ def _ruler_lines(manifest: Manifest, tick_ids: set[int]) -> set[int]:
     """Ids of the test tracks that at least TICK_FAMILY of the ticks ``tick_ids`` touch (an
     end within a tick's width plus TICK_TOUCH_MM of the track's centre line: a ruler's line
     is drawn like its ticks, and a track's own commanded width can be a blob's, 42 mm over
-    the 1 mm a test line restores its pressure in): a ruler's base line. StartStopTestPLA1 draws each block's ruler as a 90 mm line with 44
-    ticks standing on it; measured as a test line, 82 % of its stations were flagged
-    `crossing` (the ticks every 2 mm), 1180 of the print's 2200."""
+    the 1 mm a test line restores its pressure in): a ruler's base line. StartStopTestPLA1
+    draws each block's ruler as a 90 mm line with 44 ticks standing on it; measured as a
+    test line, 82 % of its stations were flagged `crossing` (the ticks every 2 mm), 1180
+    of the print's 2200."""
     from scipy.spatial import cKDTree
 
     ends = []
