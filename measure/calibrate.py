@@ -114,6 +114,7 @@ class WidthCalibration:
     gain_sd         its sd
     gain_drift_per_10s  the gain's linear change over 10 s, when fitted (calibrate)
     sections        per section: commanded width, median apparent width, its sd, stations
+    section_floor_mm  sd added to every section's in the fit of eq. (1) (calibrate)
     applied         whether the widths were corrected
     glare_bracket_mm  (plain, streak) offsets when the reference was in glare (see above)
     note            one line for the summary and the CLI
@@ -126,6 +127,7 @@ class WidthCalibration:
     gain_sd: float = float("nan")
     gain_drift_per_10s: float = float("nan")
     sections: list = field(default_factory=list)
+    section_floor_mm: float = 0.0
     applied: bool = False
     glare_bracket_mm: tuple | None = None
     note: str = ""
@@ -228,7 +230,7 @@ def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak,
 
 def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
               plain_width_mm=None, streak_check=None, t_s=None, since_s=None,
-              settle_s=None, x_mm=None, photo: bool = False) -> WidthCalibration:
+              settle_s=None, x_mm=None, photo: bool = False, section_floor_mm: float = 0.0) -> WidthCalibration:
     """Fit eq. (1) to measured apparent widths at the reference stations.
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
@@ -250,6 +252,20 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
 
     ``photo``: the picture is a photo at an angle; an applied offset's sd gets
     PHOTO_OFFSET_SD_MM in quadrature (whether to apply is decided on the reference's own sd).
+
+    ``section_floor_mm``: an error each section has as a whole, added in quadrature to its
+    sd (from its stations) in the fit of eq. (1): the scan's width scatter that its edge
+    fits do not explain (the floor f of measure/widths.py calibrated_sd, on the test
+    tracks). What makes it (uneven light, defocus, grain, a JPEG's quantisation, which
+    depends on what each 8 px block holds) changes over the picture more slowly than along
+    a station's neighbours, so a section's stations do not average it out, and the
+    reference is read in one place of the picture, the test tracks in others. On a
+    light-plate JPEG render (f 8.6 um) the offset read -39 +- 2.2 um where the test tracks
+    needed -38, and on ten renders of a smaller print -22 to -70 (+- 5 to 8 um) where they
+    needed -26 to -40: more than 2 sd off on three (3.9 sd at most). With the floor: +- 12
+    and 15-36 um, not applied (MAX_OFFSET_SD_MM); on the same prints as PNGs (f ~3.5 um)
+    +- 4.8 and 5.5-6.7 um, applied, 0.4-1.5 sd from what the test tracks needed (1.6-3.9 sd
+    without the floor on the three measured both ways).
     """
     cal = WidthCalibration()
     rows = []
@@ -284,6 +300,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
         row.update(apparent_mm=float(np.median(a)), apparent_sd_mm=sd, trend_mm=float(slope))
         rows.append(row)
     cal.sections = rows
+    cal.section_floor_mm = float(section_floor_mm)
     ws = np.array([r["width_commanded_mm"] for r in rows])
     if len(rows) < 2 or np.ptp(ws) < 0.1:
         present = [k for k in np.unique(section) if (section == k).sum() >= MIN_STATIONS]
@@ -303,7 +320,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     drift = bool(np.all(np.isfinite(t_mid)) and len(rows) >= 4 and repeated)
     if drift:      # g(t) = g + g1 (t - mean t) / 10 s
         A = np.column_stack([ws, ws * (t_mid - t_mid.mean()) / 10.0, np.ones(len(ws))])
-    wt = 1.0 / np.array([r["apparent_sd_mm"] for r in rows]) ** 2
+    wt = 1.0 / np.hypot([r["apparent_sd_mm"] for r in rows], section_floor_mm) ** 2
     y = np.array([r["apparent_mm"] for r in rows])
     cov = np.linalg.inv(A.T @ (A * wt[:, None]))
     coef = cov @ (A.T @ (wt * y))
@@ -320,7 +337,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     cal.gain_sd, cal.offset_sd_mm = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
     if plain_width_mm is not None:
         plain = calibrate(plain_width_mm, valid, nominal_mm, section, height_mm, t_s=t_s, since_s=since_s,
-                          settle_s=settle_s, x_mm=x_mm)
+                          settle_s=settle_s, x_mm=x_mm, section_floor_mm=section_floor_mm)
         # and only with a section to spare (the misfit between sections then scales the sd):
         # on a Bowden render whose first 0.4 mm section was lost to glare, the two left read
         # the streak-modelled offset 7 um off with an sd of 2

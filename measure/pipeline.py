@@ -68,12 +68,12 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     """
     if not manifest.test_tracks():
         raise UserError("the manifest has no test tracks to measure; make it with `calib pattern` or `calib plan`")
-    gray, color = load_image(image_path)
-    reg = _register(gray, manifest, points)
+    luma, color = load_image(image_path)
+    reg = _register(luma, manifest, points)
     # widths are measured on the channel that best tells bead from plate (grey unless a
     # coloured bead on a grained plate separates much better in colour: measure/contrast.py)
     from measure.contrast import bead_channel
-    gray, channel = bead_channel(gray, color, manifest, reg, chroma_halved=jpeg_chroma_subsampled(image_path))
+    gray, channel = bead_channel(luma, color, manifest, reg, chroma_halved=jpeg_chroma_subsampled(image_path))
     if reg.method.startswith("auto"):
         # the automatic pose is refined once more on the bead centres it measures (ICP;
         # with stations every 1 mm instead of 0.25 mm the flatbed render's pose was 30x
@@ -98,7 +98,8 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     if axis is not None:
         table.light_angle_deg = angle_to_light_deg(meas.nx, meas.ny, axis)
     cal = apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=meas.blur_plane_px,
-                                     test_measurement=meas, colour_axis=channel)
+                                     test_measurement=meas, colour_axis=channel,
+                                     luma=luma if channel.used else None)
     if cal.applied:   # physical = apparent - b0 (measure/calibrate.py); missing beads stay 0
         table.width_mm = np.where(table.width_mm > 0, table.width_mm - cal.offset_mm, table.width_mm)
     valid_frac = float(np.mean(table.valid)) if len(table) else 0.0
@@ -201,11 +202,20 @@ def _resolution_px_per_mm(reg, table) -> float:
 
 
 def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, test_measurement=None,
-                               colour_axis=None):
+                               colour_axis=None, luma=None):
     """measure/calibrate.py on the print's width-reference prime line, measured like the
     test tracks (a reference in glare gets a bracketed offset unless ``test_measurement``,
     the test tracks' WidthMeasurement, vouches for the streak model: measure/calibrate.py);
-    an unapplied WidthCalibration saying why when the print has none."""
+    an unapplied WidthCalibration saying why when the print has none.
+
+    ``luma``: the picture's luminance when ``gray`` is a colour projection (measure/contrast.py).
+    A glare streak is the lamp's white light, a luminance feature; the projection cancels
+    luminance, except where a JPEG's halved chroma was restored with luminance as its guide,
+    which copies luminance structure beside the edges. On the light-plate JPEG render that
+    passed for a streak on 53 % of the reference's stations (3 % on the same scene as a PNG,
+    none in luminance), the streak fits read the reference 35 um wide of its plain edges and
+    the bracket between them (sd 18 um) was not applied. So the reference is in glare on a
+    projection only when its luminance says so too."""
     from measure.calibrate import WidthCalibration, calibrate, reference_stations, streak_consistency
     from patterns.manifest import sample_points
 
@@ -219,6 +229,12 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
     h = float(np.nanmedian(smp.height_mm)) if len(smp) else 0.2
     ok = m.table.valid
     in_glare = bool(ok.any()) and m.glare_streak[ok].mean() > GLARE_REFERENCE_SHARE
+    width = m.table.width_mm
+    if in_glare and luma is not None:
+        ml = measure_widths(luma, smp, reg, manifest=manifest, color=color)
+        okl = ml.table.valid
+        if not (okl.any() and ml.glare_streak[okl].mean() > GLARE_REFERENCE_SHARE):
+            in_glare, width = False, m.plain_width_mm
     check = None
     tm = test_measurement
     if in_glare and tm is not None and tm.glare_streak is not None:
@@ -227,10 +243,11 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
             t = tm.table
             check = streak_consistency(t.track, t.t_s, nominal, t.width_mm, tm.plain_width_mm,
                                        tm.glare_streak, t.valid)
-    return calibrate(m.table.width_mm, ok, smp.width_nominal_mm, section, height_mm=h,
+    return calibrate(width, ok, smp.width_nominal_mm, section, height_mm=h,
                      plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check,
                      t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm,
-                     photo=_is_photo(reg, manifest))
+                     photo=_is_photo(reg, manifest),
+                     section_floor_mm=tm.sd_floor_mm if tm is not None else 0.0)
 
 
 def _is_photo(reg, manifest) -> bool:
