@@ -86,7 +86,8 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
     truth_ok = np.isfinite(tr.width_mm) & (tr.width_mm > 0)
     ok = tb.valid & truth_ok
     e = tb.width_mm[ok] - tr.width_mm[ok]
-    by_fit = None if res.summary["apparent_width"]["applied"] else calibrated_by_fit(man, tb, tr, printer)
+    cal = res.summary["apparent_width"]
+    by_fit = None if cal["applied"] else calibrated_by_fit(man, tb, tr, printer, cal)
     sd_honest = sd_calibration(e, tb.width_sd_mm[ok])
     return {"by_fit": by_fit, "rms": float(np.sqrt(np.mean(e ** 2))) if ok.any() else np.nan,
             "bias": float(np.mean(e)) if ok.any() else np.nan,
@@ -118,22 +119,23 @@ def sd_calibration(err_mm, sd_mm) -> dict:
             "sd_ratio_high": ratio(sd >= hi)}
 
 
-def calibrated_by_fit(man, tb, tr, printer: str) -> dict:
+def calibrated_by_fit(man, tb, tr, printer: str, cal: dict | None = None) -> dict:
     """Apparent widths calibrated by the fit: a MAP fit of ``<truth model>+scan_bias`` on the
-    whole scan, with the prior `calib fit` gives uncalibrated widths (fit/measurement.py),
+    whole scan, with the prior `calib fit` gives uncalibrated widths whose measurement block
+    is ``cal`` (fit/measurement.py b0_prior),
     and the widths corrected by the fitted ``w_apparent = w + b0 + b1 (w - w_ref)``
     (fit/effects.py ScanBias). With the truth's own dynamics this is the best a fit can do;
     {rms, bias (mm) of the corrected valid widths, b0_mm, b1}."""
     from fit.data import FitData, scan_from_table
     from fit.effects import ScanBias
     from fit.likelihood import NoiseOptions
-    from fit.measurement import UNCALIBRATED_SD_MM
+    from fit.measurement import b0_prior
     from fit.sampler import fit_map, make_problem
     from fit.truth import load_truth
     from patterns.profile import data_dir
 
     spec, values, _ = load_truth(data_dir() / "truths" / PRINTERS[printer][1], man.printer)
-    prior = {"scan_bias.b0_mm": {"prior": "normal", "mu": 0.0, "sd": UNCALIBRATED_SD_MM}}
+    prior = {"scan_bias.b0_mm": b0_prior(cal or {})}
     problem = make_problem(f"{spec}+scan_bias", FitData([scan_from_table(tb, man, "scan")]), NoiseOptions(),
                            prior, ())
     v = fit_map(problem, seed=0, global_search=True).values

@@ -8,7 +8,12 @@ in two ways (issue #11 item 5, first step):
 * the prior of the scan's ``scan_bias.b0_mm`` (fit/effects.py ScanBias) when the model has
   that effect: normal(0, max(sd_b0, 1 um)) for calibrated widths (the offset left is the
   calibration's own error), normal(0, UNCALIBRATED_SD_MM) for apparent widths (an edge
-  offset of tens of um, measured on realistic renders: bench_realism);
+  offset of tens of um, measured on realistic renders: bench_realism), or normal(b0, sd_b0)
+  when the reference measured the offset but too loosely to correct the widths with it
+  (``prior_ok``, sd_b0 above measure/calibrate.py MAX_OFFSET_SD_MM) and more tightly than
+  UNCALIBRATED_SD_MM: on the light-plate JPEG render -39 +- 12 um where the test tracks'
+  offset was -38, and on ten JPEGs of a smaller print within 1.1 sd on eight, 1.8 and 2.3
+  on two (the sds from the sections' floor, measure/calibrate.py);
 * a caution in the trust verdict when a scan's widths are apparent and the model has no
   ``scan_bias``: an offset common to all widths can pass for back-pressure or flow.
 """
@@ -47,6 +52,29 @@ def scan_states(data) -> list[dict]:
     return out
 
 
+def measured_offset(cal: dict) -> tuple[float, float] | None:
+    """(b0, sd) in mm that a calibration block not applied still says of its apparent widths
+    (``prior_ok`` and an sd below UNCALIBRATED_SD_MM), else None."""
+    if cal.get("applied") or not cal.get("prior_ok"):
+        return None
+    b0, sd = cal.get("offset_mm"), cal.get("offset_sd_mm")
+    if b0 is None or sd is None or not (np.isfinite(b0) and 0 < sd < UNCALIBRATED_SD_MM):
+        return None
+    return float(b0), float(sd)
+
+
+def b0_prior(cal: dict) -> dict:
+    """The prior of ``scan_bias.b0_mm`` (fit.priors format) on widths whose measurement
+    block is ``cal`` (module docstring)."""
+    if cal.get("applied"):
+        sd = cal.get("offset_sd_mm")
+        return {"prior": "normal", "mu": 0.0, "sd": max(float(sd), MIN_SD_MM) if sd else UNCALIBRATED_SD_MM}
+    m = measured_offset(cal)
+    if m is not None:
+        return {"prior": "normal", "mu": m[0], "sd": max(m[1], MIN_SD_MM)}
+    return {"prior": "normal", "mu": 0.0, "sd": UNCALIBRATED_SD_MM}
+
+
 def prior_overrides(states: list[dict], param_names) -> dict[str, dict]:
     """Prior overrides (fit.priors.load_priors_file format) for the scans' scan_bias.b0_mm."""
     names = set(param_names)
@@ -57,9 +85,7 @@ def prior_overrides(states: list[dict], param_names) -> dict[str, dict]:
             continue
         for name in (f"scan_bias.b0_mm@{st['scan']}", "scan_bias.b0_mm"):
             if name in names:
-                sd = cal.get("offset_sd_mm") if cal.get("applied") else None
-                sd = max(float(sd), MIN_SD_MM) if sd else UNCALIBRATED_SD_MM
-                out[name] = {"prior": "normal", "mu": 0.0, "sd": sd}
+                out[name] = b0_prior(cal)
                 break
     return out
 
@@ -106,8 +132,10 @@ def notes(states: list[dict], has_scan_bias: bool) -> list[str]:
         cal = st["calibration"]
         if cal is None or cal.get("applied"):
             continue
-        tail = ("scan_bias carries it with a wide prior" if has_scan_bias else
-                "an offset common to all widths can pass for back-pressure or flow: add scan_bias to the model")
+        m = measured_offset(cal)
+        tail = ("an offset common to all widths can pass for back-pressure or flow: add scan_bias to the model"
+                if not has_scan_bias else "scan_bias carries it with a wide prior" if m is None else
+                f"scan_bias carries it with the reference's {m[0] * 1000:+.0f} +- {m[1] * 1000:.0f} um as its prior")
         why = (cal.get("note") or "not calibrated").split(";")[0]
         out.append(f"{st['scan']}: widths are apparent widths ({why}); {tail}")
     return out

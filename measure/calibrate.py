@@ -116,6 +116,10 @@ class WidthCalibration:
     sections        per section: commanded width, median apparent width, its sd, stations
     section_floor_mm  sd added to every section's in the fit of eq. (1) (calibrate)
     applied         whether the widths were corrected
+    prior_ok        not applied only because the offset's sd exceeds MAX_OFFSET_SD_MM (the
+                    reference settled, its gain is plausible): offset +- sd is still what
+                    the reference says of the apparent widths, a prior for the fit's
+                    scan_bias (fit/measurement.py)
     glare_bracket_mm  (plain, streak) offsets when the reference was in glare (see above)
     note            one line for the summary and the CLI
     warnings        e.g. a width still changing inside a settled section
@@ -129,6 +133,7 @@ class WidthCalibration:
     sections: list = field(default_factory=list)
     section_floor_mm: float = 0.0
     applied: bool = False
+    prior_ok: bool = False
     glare_bracket_mm: tuple | None = None
     note: str = ""
     warnings: list = field(default_factory=list)
@@ -250,8 +255,8 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     (:func:`settled_widths`), not the median of its settled part, and with >= 2 sections of each width the gain may drift linearly
     in time (the start of a thermal ooze tail is a slow relative flow deficit: seed 000).
 
-    ``photo``: the picture is a photo at an angle; an applied offset's sd gets
-    PHOTO_OFFSET_SD_MM in quadrature (whether to apply is decided on the reference's own sd).
+    ``photo``: the picture is a photo at an angle; the offset's sd gets PHOTO_OFFSET_SD_MM
+    in quadrature (whether to apply is decided on the reference's own sd).
 
     ``section_floor_mm``: an error each section has as a whole, added in quadrature to its
     sd (from its stations) in the fit of eq. (1): the scan's width scatter that its edge
@@ -375,6 +380,9 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                "the width reference's sections disagree")
         cal.note = (f"apparent-width calibration not applied: {why} (offset {b0 * 1000:+.0f} +- "
                     f"{cal.offset_sd_mm * 1000:.0f} um); widths are apparent widths, add scan_bias to the model")
+        cal.prior_ok = bool(not drifting and 0.7 <= g <= 1.3 and np.isfinite(cal.offset_sd_mm))
+        if photo:       # as a prior it carries the photo's place doubt as an applied offset does
+            cal.offset_sd_mm = float(np.hypot(cal.offset_sd_mm, PHOTO_OFFSET_SD_MM))
         return cal
     if not 0.7 <= g <= 1.3:
         cal.warnings.append(f"width reference gain {g:.2f} is far from 1: wrong layer height, flow or "

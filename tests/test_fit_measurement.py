@@ -42,6 +42,31 @@ def test_scan_bias_prior_follows_the_calibration(tmp_path, cal, sd, capsys):
     assert ("apparent widths" in err) == (cal is UNCAL) and "add scan_bias" not in err
 
 
+def test_an_offset_measured_too_loosely_to_apply_is_still_the_prior_where_it_says_more():
+    """A reference whose sections disagree (sd above measure/calibrate.py MAX_OFFSET_SD_MM)
+    is not applied to the widths; its offset +- sd becomes scan_bias's prior when that sd
+    is below the uncalibrated one, not when the reference had not settled or is looser."""
+    from measure.calibrate import calibrate
+    rng = np.random.default_rng(2)
+    nominal = np.repeat([1.0, 0.4, 1.0, 0.4], 40)
+    section = np.repeat(np.arange(4), 40)
+    width = nominal - 0.039 + rng.normal(0, 0.002, 160) + np.array([0.012, -0.010, -0.012, 0.010])[section]
+    cal = calibrate(width, np.ones(160, bool), nominal, section).to_dict()
+    assert not cal["applied"] and cal["prior_ok"] and 0.010 < cal["offset_sd_mm"] < measurement.UNCALIBRATED_SD_MM
+    prior = measurement.b0_prior(cal)
+    assert prior["mu"] == pytest.approx(cal["offset_mm"]) and prior["sd"] == pytest.approx(cal["offset_sd_mm"])
+    assert abs(prior["mu"] + 0.039) < 2 * prior["sd"]
+    note = measurement.notes([{"scan": "s", "calibration": cal}], has_scan_bias=True)[0]
+    assert f"{cal['offset_mm'] * 1000:+.0f} +- {cal['offset_sd_mm'] * 1000:.0f} um as its prior" in note
+    loose = dict(cal, offset_sd_mm=0.035)
+    unsettled = dict(cal, prior_ok=False)
+    for c in (loose, unsettled, UNCAL):
+        assert measurement.b0_prior(c) == {"prior": "normal", "mu": 0.0, "sd": measurement.UNCALIBRATED_SD_MM}
+    # a photo's reference carries its place doubt as a prior too
+    photo = calibrate(width, np.ones(160, bool), nominal, section, photo=True).to_dict()
+    assert photo["offset_sd_mm"] > cal["offset_sd_mm"] and not photo["applied"]
+
+
 def test_apparent_widths_without_scan_bias_are_said_and_a_caution(tmp_path, capsys):
     pairs = scan_with_summary(tmp_path, UNCAL)
     run_fit(pairs, "pa", map_only=True, progress=False)
