@@ -28,6 +28,11 @@ import numpy as np
 UNCALIBRATED_SD_MM = 0.03
 #: Floor (mm) on the prior sd from a calibration.
 MIN_SD_MM = 0.001
+#: An applied calibration whose offset is known only to this sd (mm) or worse leaves
+#: ``--model auto`` a width offset to carry (:func:`auto_start`): every photo at an angle
+#: (its place doubt alone is 10 um: measure/calibrate.py PHOTO_OFFSET_SD_MM); flatbed
+#: scans read 1-6.3 um (bench_realism, bench_e2e's Bowden seeds, 2026-11-27).
+AUTO_SCAN_BIAS_SD_MM = 0.008
 
 
 def load_calibration(widths_path) -> dict | None:
@@ -114,13 +119,15 @@ def light_varies(angle_deg) -> bool:
 def auto_start(scan: str, cal: dict | None, light: bool = False) -> tuple[str, dict[str, dict]]:
     """(base model, prior overrides) where ``--model auto`` starts on a scan whose
     measurement block is ``cal``: ``pa+scan_bias`` with the prior above when the widths are
-    apparent widths (its offset would otherwise be read as back-pressure or flow), else
-    ``pa``; ``+view_light`` when ``light`` (:func:`light_varies`): beads whose flank faces a
+    apparent widths (its offset would otherwise be read as back-pressure or flow) or
+    corrected by an offset known to AUTO_SCAN_BIAS_SD_MM or worse (a phone's: on the 35 deg
+    Bowden render it was 23.5 um off, 2 sd, and bench_e2e's phone fits, whose 90 % intervals
+    held tau on 91.7 % of 24 seeds, all carried scan_bias), else ``pa``; ``+view_light`` when ``light`` (:func:`light_varies`): beads whose flank faces a
     flatbed's lamp read ~2.5 um wider, and on bench_e2e's back-pressure scans that pulled Kb
     high (with it, 40 seeds: Kb 0.0034 lower on 39, tau 0.0007 s higher on 37, Kb's 90 %
     coverage 85 -> 90 %, tau's 95 % both)."""
     tail = "+view_light" if light else ""
-    if cal is None or cal.get("applied"):
+    if cal is None or (cal.get("applied") and not (cal.get("offset_sd_mm") or 0.0) >= AUTO_SCAN_BIAS_SD_MM):
         return "pa" + tail, {}
     return "pa+scan_bias" + tail, prior_overrides([{"scan": scan, "calibration": cal}], ["scan_bias.b0_mm"])
 

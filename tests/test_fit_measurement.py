@@ -141,3 +141,13 @@ def test_model_auto_starts_with_view_light_only_where_the_light_angle_spans_its_
     base, pri = measurement.auto_start("s", UNCAL, light=True)
     assert base == "pa+scan_bias+view_light" and set(pri) == {"scan_bias.b0_mm"}
     assert measurement.auto_start("s", UNCAL)[0] == "pa+scan_bias"
+
+
+def test_model_auto_carries_a_photos_loose_applied_offset_with_scan_bias():
+    """A photo's applied offset is known to >= 10 um (its place doubt): --model auto starts
+    with scan_bias and that sd as its prior, where a flatbed's (a few um) starts with pa."""
+    photo = dict(CAL, offset_sd_mm=0.0116)
+    base, pri = measurement.auto_start("s", photo)
+    assert base == "pa+scan_bias" and pri == {"scan_bias.b0_mm": {"prior": "normal", "mu": 0.0, "sd": 0.0116}}
+    edge = dict(CAL, offset_sd_mm=measurement.AUTO_SCAN_BIAS_SD_MM * 0.99)
+    assert measurement.auto_start("s", edge) == ("pa", {})
