@@ -335,6 +335,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
         coef, cov = coef[[0, 2]], cov[np.ix_([0, 2], [0, 2])]
     g, b0 = coef
     dof = len(rows) - A.shape[1]
+    disagree = dof > 0 and float(np.sum(wt * resid ** 2)) / dof > 1.0
     if dof > 0:   # scale by the misfit between sections of the same width, never below 1
         cov = cov * max(1.0, float(np.sum(wt * resid ** 2)) / dof)
     b0 = b0 - (1.0 - g) * height_mm * (1.0 - np.pi / 4.0)
@@ -377,7 +378,9 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                    for r in unsettled)
     if drifting or cal.offset_sd_mm > MAX_OFFSET_SD_MM:
         why = ("the width reference had not settled" if drifting else
-               "the width reference's sections disagree")
+               "the width reference's sections disagree" if disagree else
+               f"the picture's own width scatter ({section_floor_mm * 1000:.1f} um a section) leaves the "
+               "reference's offset loose")
         cal.note = (f"apparent-width calibration not applied: {why} (offset {b0 * 1000:+.0f} +- "
                     f"{cal.offset_sd_mm * 1000:.0f} um); widths are apparent widths, add scan_bias to the model")
         cal.prior_ok = bool(not drifting and 0.7 <= g <= 1.3 and np.isfinite(cal.offset_sd_mm))

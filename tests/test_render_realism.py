@@ -60,6 +60,11 @@ def test_a_section_floor_makes_the_offset_sd_cover_errors_shared_along_a_line():
             out.append((cal.offset_mm + 0.040) / cal.offset_sd_mm)
     assert 0.90 <= np.mean(np.abs(z_floor) < 1.96) <= 0.995
     assert np.mean(np.abs(z_bare) < 1.96) < 0.88
+    # sections that agree, on a picture whose own scatter leaves the offset loose: said so
+    w, v, nom, sec = _stations(1.0, -0.040, widths=(1.0, 0.4, 1.0, 0.4), sd=0.002, seed=1)
+    cal = calibrate(w, v, nom, sec, section_floor_mm=0.012)
+    assert not cal.applied and "own width scatter (12.0 um a section)" in cal.note
+    assert "disagree" not in cal.note
 
 
 def test_calibration_needs_two_widths_and_a_plausible_gain():
