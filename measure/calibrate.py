@@ -102,6 +102,12 @@ STREAK_TRUSTED = 0.5
 PHOTO_OFFSET_SD_MM = 0.010
 #: Profile windows of neighbouring stations overlap: one in this many is independent.
 STATIONS_PER_INDEPENDENT = 4
+#: heading_shift: fewest test-track stations, smallest eigenvalue of the (cos 2 theta,
+#: sin 2 theta) covariance within peer cells (0.5 for headings spread evenly over the
+#: half-turn; 0 when all tracks lie one way), and the jackknife's blocks.
+HEADING_MIN_STATIONS = 200
+HEADING_SPAN_MIN = 0.1
+HEADING_JACKKNIFE_BLOCKS = 20
 
 
 @dataclass
@@ -121,6 +127,9 @@ class WidthCalibration:
                     the reference says of the apparent widths, a prior for the fit's
                     scan_bias (fit/measurement.py)
     glare_bracket_mm  (plain, streak) offsets when the reference was in glare (see above)
+    heading_shift_mm, heading_shift_sd_mm  on a photo, how much wider the test tracks read at
+                    the reference's heading than on average, taken out of the offset
+                    (:func:`heading_shift`); heading_coef_mm its (a, b) (mm)
     note            one line for the summary and the CLI
     warnings        e.g. a width still changing inside a settled section
     """
@@ -135,6 +144,9 @@ class WidthCalibration:
     applied: bool = False
     prior_ok: bool = False
     glare_bracket_mm: tuple | None = None
+    heading_shift_mm: float = float("nan")
+    heading_shift_sd_mm: float = float("nan")
+    heading_coef_mm: tuple | None = None
     note: str = ""
     warnings: list = field(default_factory=list)
 
@@ -208,15 +220,7 @@ def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak,
     track, t_s, streak = np.asarray(track), np.asarray(t_s, float), np.asarray(streak, bool)
     nominal_mm = np.asarray(nominal_mm, float)
     ok = valid & np.isfinite(width_mm) & (width_mm > 0) & np.isfinite(nominal_mm) & np.isfinite(t_s)
-    since = np.full(len(t_s), np.nan)
-    for tid in np.unique(track):
-        i = np.flatnonzero(track == tid)
-        i = i[np.argsort(t_s[i], kind="stable")]
-        run = np.r_[True, np.abs(np.diff(np.nan_to_num(nominal_mm[i], nan=-1.0))) > 0.005]
-        start = t_s[i][np.maximum.accumulate(np.where(run, np.arange(len(i)), 0))]
-        since[i] = t_s[i] - start
-    cell = np.digitize(np.nan_to_num(since, nan=-1.0), STREAK_CELL_EDGES_S)
-    key = (track.astype(np.int64) * 10000 + np.round(np.nan_to_num(nominal_mm) / 0.01).astype(np.int64)) * 100 + cell
+    key = _peer_cells(track, t_s, nominal_mm)
     ds, dp, n = [], [], []
     for k in np.unique(key[ok]):
         a = ok & (key == k) & streak
@@ -233,9 +237,101 @@ def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak,
     return float(np.average(ds, weights=n)), float(np.average(dp, weights=n)), len(n)
 
 
+def _peer_cells(track, t_s, nominal_mm):
+    """A key per station: its track, commanded width (0.01 mm) and cell of the time since
+    that width began (STREAK_CELL_EDGES_S). Stations sharing a key laid the same physical
+    bead as far as the flow's history goes (its transients follow the width changes)."""
+    track, t_s, nominal_mm = np.asarray(track), np.asarray(t_s, float), np.asarray(nominal_mm, float)
+    since = np.full(len(t_s), np.nan)
+    for tid in np.unique(track):
+        i = np.flatnonzero(track == tid)
+        i = i[np.argsort(t_s[i], kind="stable")]
+        run = np.r_[True, np.abs(np.diff(np.nan_to_num(nominal_mm[i], nan=-1.0))) > 0.005]
+        start = t_s[i][np.maximum.accumulate(np.where(run, np.arange(len(i)), 0))]
+        since[i] = t_s[i] - start
+    cell = np.digitize(np.nan_to_num(since, nan=-1.0), STREAK_CELL_EDGES_S)
+    return (track.astype(np.int64) * 10000 + np.round(np.nan_to_num(nominal_mm) / 0.01).astype(np.int64)) * 100 + cell
+
+
+def heading_shift(track, s_mm, t_s, nominal_mm, width_mm, valid, nx, ny, ref_nx, ref_ny,
+                  blocks: int = HEADING_JACKKNIFE_BLOCKS):
+    """How much wider the test tracks read at the reference's heading than on average (mm):
+    (shift, sd, a, b), or None when their headings do not span the half-turn.
+
+    A photo at an angle foreshortens a bead across its axis by how its normal lies to the
+    view: the apparent width depends on the heading theta of the normal as
+    w_app = w + a cos 2 theta + b sin 2 theta (fit/effects.py ViewHeading's even terms).
+    The prime line's passes all lie one way, so its offset b0 is the one at its heading;
+    the test tracks need the mean over theirs:
+
+        b0(test) = b0(reference) - [h(theta_ref) - mean_test h(theta)]
+
+    a and b are read from the test tracks themselves, truth-free: least squares of the
+    widths on (cos 2 theta, sin 2 theta) within peer cells (same track, commanded width and
+    time since that width began: _peer_cells, which holds the flow's transients, whose
+    phases on a spiral follow the heading), two rounds of 4-MAD rejection; sd by a
+    delete-one-block jackknife over ``blocks`` runs of stations along the tracks (the
+    widths' errors are shared along a track). Measured on the phone renders at 35 deg
+    (2026-11-27): the Bowden print of bench_realism read a = +13 um (+9.6 from the truth),
+    so the reference's -72 um became -59 where the test tracks needed -48; on bench_e2e's
+    phone seeds 0-4 the offset's error went from RMS 7.3 to 6.2 um.
+    """
+    track = np.asarray(track)
+    th = np.arctan2(np.asarray(ny, float), np.asarray(nx, float))
+    w = np.asarray(width_mm, float)
+    ok = (np.asarray(valid, bool) & np.isfinite(w) & (w > 0) & np.isfinite(np.asarray(nominal_mm, float))
+          & np.isfinite(np.asarray(t_s, float)) & np.isfinite(th))
+    key = _peer_cells(track, t_s, nominal_mm)
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    ok &= counts[inv] >= 5
+    if ok.sum() < HEADING_MIN_STATIONS:
+        return None
+    X = np.column_stack([np.cos(2 * th), np.sin(2 * th)])
+
+    def solve(use):
+        g = inv[use]
+        ng = np.bincount(g, minlength=len(counts)).astype(float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_y = np.bincount(g, w[use], minlength=len(counts)) / ng
+            mean_x = np.column_stack([np.bincount(g, X[use, j], minlength=len(counts)) / ng for j in range(2)])
+        xc, yc = X[use] - mean_x[g], w[use] - mean_y[g]
+        return np.linalg.lstsq(xc, yc, rcond=None)[0], xc, yc
+
+    use = ok.copy()
+    for _ in range(2):
+        coef, xc, yc = solve(use)
+        r = yc - xc @ coef
+        mad = 1.4826 * np.median(np.abs(r)) + 1e-9
+        keep = np.zeros(len(w), bool)
+        keep[np.flatnonzero(use)] = np.abs(r) < 4 * mad
+        use = keep
+    coef, xc, _ = solve(use)
+    # the headings must span the half-turn, else cos 2 theta and sin 2 theta are not both read
+    if np.linalg.eigvalsh(xc.T @ xc / len(xc))[0] < HEADING_SPAN_MIN:
+        return None
+    rth = np.arctan2(np.asarray(ref_ny, float), np.asarray(ref_nx, float))
+    rX = np.column_stack([np.cos(2 * rth), np.sin(2 * rth)]).mean(axis=0)
+    tX = X[ok].mean(axis=0)
+
+    def shift(c):
+        return float((rX - tX) @ c)
+
+    order = np.flatnonzero(use)[np.lexsort((np.asarray(s_mm, float)[use], track[use]))]
+    parts = np.array_split(order, blocks)
+    jack = []
+    for part in parts:
+        u = use.copy()
+        u[part] = False
+        jack.append(shift(solve(u)[0]))
+    jack = np.asarray(jack)
+    sd = float(np.sqrt((len(jack) - 1) / len(jack) * np.sum((jack - jack.mean()) ** 2)))
+    return shift(coef), sd, float(coef[0]), float(coef[1])
+
+
 def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
               plain_width_mm=None, streak_check=None, t_s=None, since_s=None,
-              settle_s=None, x_mm=None, photo: bool = False, section_floor_mm: float = 0.0) -> WidthCalibration:
+              settle_s=None, x_mm=None, photo: bool = False, section_floor_mm: float = 0.0,
+              heading=None) -> WidthCalibration:
     """Fit eq. (1) to measured apparent widths at the reference stations.
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
@@ -271,6 +367,10 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     and 15-36 um, not applied (MAX_OFFSET_SD_MM); on the same prints as PNGs (f ~3.5 um)
     +- 4.8 and 5.5-6.7 um, applied, 0.4-1.5 sd from what the test tracks needed (1.6-3.9 sd
     without the floor on the three measured both ways).
+
+    ``heading``: (shift, sd, a, b) of :func:`heading_shift`: the test tracks read ``shift``
+    wider at the reference's heading than on average; it is taken out of b0 and its sd
+    added in quadrature (a photo at an angle).
     """
     cal = WidthCalibration()
     rows = []
@@ -368,6 +468,12 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                                 f"{min(cal.glare_bracket_mm) * 1000:+.0f} and {max(cal.glare_bracket_mm) * 1000:+.0f} um "
                                 "(plain edges / glare streak modelled); using the middle with that uncertainty. "
                                 "Scan or photograph with the light along the prime line, or matte plastic")
+    if heading is not None:
+        b0 = b0 - heading[0]
+        cal.offset_mm = float(b0)
+        cal.offset_sd_mm = float(np.hypot(cal.offset_sd_mm, heading[1]))
+        cal.heading_shift_mm, cal.heading_shift_sd_mm = float(heading[0]), float(heading[1])
+        cal.heading_coef_mm = (float(heading[2]), float(heading[3]))
     unsettled = [r for r in rows if abs(r["trend_mm"]) > max(6 * r["apparent_sd_mm"], 0.004)]
     for r in unsettled:
         cal.warnings.append(f"width reference {r['width_commanded_mm']:.2f} mm still changes by "
@@ -402,6 +508,10 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     cal.note = (f"apparent-width calibration: apparent = {g:.3f} x physical {b0 * 1000:+.1f} um "
                 f"(+-{cal.offset_sd_mm * 1000:.1f} um) from {sum(r['stations'] for r in rows)} reference "
                 f"stations; widths corrected by {-b0 * 1000:+.1f} um")
+    if heading is not None:
+        cal.note += (f" (the test tracks read {abs(heading[0]) * 1000:.1f} um "
+                     f"{'wider' if heading[0] > 0 else 'narrower'} at the reference's heading than on average: "
+                     "the photo's foreshortening, taken out)")
     return cal
 
 

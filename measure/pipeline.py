@@ -215,8 +215,13 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
     passed for a streak on 53 % of the reference's stations (3 % on the same scene as a PNG,
     none in luminance), the streak fits read the reference 35 um wide of its plain edges and
     the bracket between them (sd 18 um) was not applied. So the reference is in glare on a
-    projection only when its luminance says so too."""
-    from measure.calibrate import WidthCalibration, calibrate, reference_stations, streak_consistency
+    projection only when its luminance says so too.
+
+    On a photo at an angle the offset read at the reference's heading is moved to the test
+    tracks' mean heading, by how their own widths change with heading
+    (measure/calibrate.py heading_shift)."""
+    from measure.calibrate import (WidthCalibration, calibrate, heading_shift, reference_stations,
+                                   streak_consistency)
     from patterns.manifest import sample_points
 
     ref = reference_stations(manifest)
@@ -235,19 +240,22 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
         okl = ml.table.valid
         if not (okl.any() and ml.glare_streak[okl].mean() > GLARE_REFERENCE_SHARE):
             in_glare, width = False, m.plain_width_mm
-    check = None
+    check = heading = None
     tm = test_measurement
-    if in_glare and tm is not None and tm.glare_streak is not None:
-        nominal = sample_points(manifest).width_nominal_mm
-        if len(nominal) == len(tm.table):
-            t = tm.table
+    photo = _is_photo(reg, manifest)
+    nominal = sample_points(manifest).width_nominal_mm if tm is not None else None
+    if tm is not None and len(nominal) == len(tm.table):
+        t = tm.table
+        if in_glare and tm.glare_streak is not None:
             check = streak_consistency(t.track, t.t_s, nominal, t.width_mm, tm.plain_width_mm,
                                        tm.glare_streak, t.valid)
+        if photo and ok.any():
+            heading = heading_shift(t.track, t.s_mm, t.t_s, nominal, t.width_mm, t.valid, tm.nx, tm.ny,
+                                    smp.nx[ok], smp.ny[ok])
     return calibrate(width, ok, smp.width_nominal_mm, section, height_mm=h,
                      plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check,
-                     t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm,
-                     photo=_is_photo(reg, manifest),
-                     section_floor_mm=tm.sd_floor_mm if tm is not None else 0.0)
+                     t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm, photo=photo,
+                     section_floor_mm=tm.sd_floor_mm if tm is not None else 0.0, heading=heading)
 
 
 def _is_photo(reg, manifest) -> bool:

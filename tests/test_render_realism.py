@@ -67,6 +67,90 @@ def test_a_section_floor_makes_the_offset_sd_cover_errors_shared_along_a_line():
     assert "disagree" not in cal.note
 
 
+def _spiral_headings(a_mm, b_mm, seed, n_turns=6, ds=0.25, speed=20.0, transient_mm=0.040):
+    """One spiral track (radius 15 -> 45 mm) in steps of four commanded widths every half-turn
+    and 10 deg (so the steps drift slowly in heading), with a 40 um transient after every change: apparent = physical + a cos 2 theta + b sin 2 theta
+    + noise correlated along the track (2 mm, 8 um) + 4 um white."""
+    rng = np.random.default_rng(seed)
+    phi = np.arange(0.0, 2 * np.pi * n_turns, 0.002)
+    r = 15.0 + 30.0 * phi / phi[-1]
+    xy = np.column_stack([r * np.cos(phi), r * np.sin(phi)])
+    s_all = np.r_[0.0, np.cumsum(np.hypot(*np.diff(xy, axis=0).T))]
+    s = np.arange(0.0, s_all[-1], ds)
+    ph = np.interp(s, s_all, phi)
+    nx, ny = np.cos(ph), np.sin(ph)          # a spiral's normal is (nearly) radial
+    step = np.floor(ph / (np.pi + 0.17)).astype(int)     # every half-turn and 10 deg
+    nominal = np.array([0.4, 0.8, 0.6, 1.0])[step % 4]
+    t = s / speed
+    since = t - t[np.searchsorted(step, step)]
+    phys = nominal - transient_mm * np.exp(-since / 0.8)
+    th = np.arctan2(ny, nx)
+    k = np.exp(-ds / 2.0)
+    wob = np.zeros(len(s))
+    e = rng.normal(0, 0.008 * np.sqrt(1 - k * k), len(s))
+    wob[0] = rng.normal(0, 0.008)
+    for i in range(1, len(s)):
+        wob[i] = k * wob[i - 1] + e[i]
+    w = phys + a_mm * np.cos(2 * th) + b_mm * np.sin(2 * th) + wob + rng.normal(0, 0.004, len(s))
+    return np.zeros(len(s), int), s, t, nominal, w, np.ones(len(s), bool), nx, ny
+
+
+def test_heading_shift_moves_the_reference_offset_to_the_test_tracks_mean_heading():
+    """A photo at an angle reads a bead narrower where its normal lies along the view: the
+    reference's passes all lie one way (normal at 90 deg), the spiral's all ways. The shift
+    h(90 deg) - mean h is read from the spiral's own widths across headings, truth-free,
+    within peer cells that hold the flow's transients (they would bias a plain regression on
+    the commanded widths); its jackknife sd covers the truth, and calibrate takes it out."""
+    from measure.calibrate import heading_shift
+
+    z = []
+    for seed in range(40):
+        a, b = 0.012, -0.004
+        track, s, t, nominal, w, valid, nx, ny = _spiral_headings(a, b, seed)
+        ref = np.full(50, np.pi / 2)
+        shift, sd, a_hat, b_hat = heading_shift(track, s, t, nominal, w, valid, nx, ny, np.cos(ref), np.sin(ref))
+        th = np.arctan2(ny, nx)
+        truth = -a - np.mean(a * np.cos(2 * th) + b * np.sin(2 * th))
+        z.append((shift - truth) / sd)
+        assert 0.0002 < sd < 0.004
+    z = np.asarray(z)
+    assert 0.80 <= np.mean(np.abs(z) < 1.96) <= 1.0 and abs(np.mean(z)) < 0.6
+    # the transients follow the width steps, which drift in heading along the spiral: read
+    # without the peer cells (one cell per commanded width) the same data are biased
+    from measure import calibrate as cm
+    by_width = pytest.MonkeyPatch()
+    errs = []
+    for seed in range(8):
+        track, s, t, nominal, w, valid, nx, ny = _spiral_headings(0.012, -0.004, seed)
+        th = np.arctan2(ny, nx)
+        truth = -0.012 - np.mean(0.012 * np.cos(2 * th) - 0.004 * np.sin(2 * th))
+        shift, sd, *_ = heading_shift(track, s, t, nominal, w, valid, nx, ny, [0.0], [1.0])
+        by_width.setattr(cm, "_peer_cells", lambda track, t_s, nominal_mm: np.round(np.asarray(nominal_mm) / 0.01))
+        plain_shift, *_ = heading_shift(track, s, t, nominal, w, valid, nx, ny, [0.0], [1.0])
+        by_width.undo()
+        errs.append((shift - truth, plain_shift - truth))
+    errs = np.asarray(errs)
+    assert abs(errs[:, 0].mean()) < 0.001 and abs(errs[:, 1].mean()) > 0.003
+    cal = calibrate(*_stations(1.0, -0.060), photo=True, heading=(shift, sd, 0.012, -0.004))
+    plain = calibrate(*_stations(1.0, -0.060), photo=True)
+    assert cal.offset_mm == pytest.approx(plain.offset_mm - shift)
+    assert cal.offset_sd_mm == pytest.approx(np.hypot(plain.offset_sd_mm, sd))
+    assert cal.heading_shift_mm == pytest.approx(shift) and "narrower at the reference's heading" in cal.note
+    assert cm.HEADING_SPAN_MIN > 0
+
+
+def test_heading_shift_needs_headings_that_span_the_half_turn():
+    """Test tracks that all lie one way (an ooze test's parallel lines) cannot tell the
+    heading's effect from the offset: no shift, the calibration as before."""
+    from measure.calibrate import heading_shift
+
+    track, s, t, nominal, w, valid, nx, ny = _spiral_headings(0.012, 0.0, 1)
+    one_way = np.full(len(s), 0.3)
+    assert heading_shift(track, s, t, nominal, w, valid, np.cos(one_way), np.sin(one_way), [0.0], [1.0]) is None
+    assert heading_shift(track[:100], s[:100], t[:100], nominal[:100], w[:100], valid[:100], nx[:100], ny[:100],
+                         [0.0], [1.0]) is None
+
+
 def test_calibration_needs_two_widths_and_a_plausible_gain():
     w, v, nom, sec = _stations(1.0, -0.03, widths=(0.4, 0.4))
     cal = calibrate(w, v, nom, sec)
