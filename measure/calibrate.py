@@ -281,8 +281,8 @@ def heading_shift(track, s_mm, t_s, nominal_mm, width_mm, valid, nx, ny, ref_nx,
     w = np.asarray(width_mm, float)
     ok = (np.asarray(valid, bool) & np.isfinite(w) & (w > 0) & np.isfinite(np.asarray(nominal_mm, float))
           & np.isfinite(np.asarray(t_s, float)) & np.isfinite(th))
-    key = _peer_cells(track, t_s, nominal_mm)
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    _, inv = np.unique(_peer_cells(track, t_s, nominal_mm), return_inverse=True)
+    counts = np.bincount(inv, weights=ok.astype(float))
     ok &= counts[inv] >= 5
     if ok.sum() < HEADING_MIN_STATIONS:
         return None
