@@ -58,7 +58,12 @@ CURVE_TWINS = {"bed_tilt": "scan_curve", "bed_mesh": "scan_curve"}
 #: structure_check); the blur across a bead follows both its place and its direction.
 VIEW_COVARIATES: dict[str, tuple[str, ...]] = {
     "view_xy": ("x_mm", "y_mm", "r_mm"),
-    "view_heading": ("heading_rad",),
+    # a spiral's normals are radial, so its heading is a pattern over the picture: the
+    # foreshortening across a bead (cos 2 theta: -35 um across the view to -58 along it at
+    # 35 deg, measure/calibrate.py heading_shift) shows up in x, y or r. bench_e2e's phone
+    # seeds 12 and 16 (2026-11-27) were refused for residuals following x_mm / r_mm (17 /
+    # 16 %); fitted with view_heading they were trusted and tau moved 0.4 / 0.8 %
+    "view_heading": ("heading_rad", "x_mm", "y_mm", "r_mm"),
     "view_glare": ("heading_rad",),
     "view_blur": ("x_mm", "y_mm", "r_mm", "heading_rad"),
     # the flank's angle to the scan's light follows the heading (a flatbed's lamp: beads

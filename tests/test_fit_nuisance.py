@@ -85,6 +85,35 @@ def test_structure_that_an_effect_explains_without_moving_the_value_is_a_caution
     assert not assess(doc).trustworthy
 
 
+def test_a_heading_pattern_seen_as_a_place_pattern_is_asked_of_view_heading():
+    """On a spiral the normals are radial, so a width that follows the heading also follows
+    x, y and r: the residuals of a tilted photo's spiral lined up with x_mm or r_mm on
+    bench_e2e's phone seeds. A known answer of another form than ViewHeading's: the
+    foreshortening across the bead, narrower by 16 um x sin^2 of the heading, scaled by an
+    obliquity growing 0.5 -> 1.5 across y (the far side seen more obliquely). Asked for
+    x_mm, the structure check refits view_heading too, which explains it decisively and
+    leaves tau inside its interval."""
+    from fit.nuisance import structure_check
+
+    sc = _scan("pa", {"pa.tau_s": 0.043}, 6)
+    t, man = sc.table, sc.manifest
+    y = np.asarray(t.y_mm, float)
+    obliquity = 0.5 + (y - y.min()) / np.ptp(y)
+    t.width_mm = t.width_mm - 0.016 * obliquity * np.sin(sc.ctx.s_heading_rad) ** 2
+    sc = scan_from_table(t, man, "foreshortened")
+
+    def problem(spec):
+        return make_problem(build_model(spec, PROF), sc)
+
+    m = fit_map(problem("pa"), seed=0, global_search=True)
+    sd = np.sqrt(np.diag(m.cov))
+    ci95 = {n: (v - 1.96 * s, v + 1.96 * s) for n, v, s in zip(m.param_names, m.theta, sd)}
+    refits = {r["effect"]: r for r in structure_check(problem, "pa", "x_mm", m.values, m.bic, ci95)}
+    assert refits["view_heading"]["delta_bic"] >= DECISIVE_BIC and not refits["view_heading"]["moved"]
+    assert "view_heading" not in [r["effect"] for r in structure_check(
+        problem, "pa", "time_since_stop_s", m.values, m.bic, ci95)]
+
+
 def test_a_width_that_follows_the_measurement_blur_is_the_pictures_and_leaves_tau_alone():
     """ViewBlur (fit/effects.py) on a known answer: apparent widths narrower by 0.5 mm per mm
     of the blur they were read with (a tilted photo: the blur across the bead follows its
