@@ -492,8 +492,9 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                "the width reference's sections disagree" if disagree else
                f"the picture's own width scatter ({section_floor_mm * 1000:.1f} um a section) leaves the "
                "reference's offset loose")
+        moved = (f", moved {-heading[0] * 1000:+.0f} um to the test tracks' headings" if heading is not None else "")
         cal.note = (f"apparent-width calibration not applied: {why} (offset {b0 * 1000:+.0f} +- "
-                    f"{cal.offset_sd_mm * 1000:.0f} um); widths are apparent widths, add scan_bias to the model")
+                    f"{cal.offset_sd_mm * 1000:.0f} um{moved}); widths are apparent widths, add scan_bias to the model")
         cal.prior_ok = bool(not drifting and 0.7 <= g <= 1.3 and np.isfinite(cal.offset_sd_mm))
         if photo:       # as a prior it carries the photo's place doubt as an applied offset does
             cal.offset_sd_mm = float(np.hypot(cal.offset_sd_mm, PHOTO_OFFSET_SD_MM))
