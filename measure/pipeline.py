@@ -127,6 +127,14 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
                         f"contrast is under {DETECTABLE_SNR:g}x the plate texture's; grey on the QA overlay): "
                         "neither their widths nor their absence is used; a plain plate, even light or a "
                         "flatbed scan reads them")
+    if channel.used and channel.chroma_restored:
+        # the beads differ from the plate mostly in colour and this file kept a quarter of
+        # it: on the light-plate render (every phenomenon, JPEG 70) the widths scatter
+        # 22.8 um at 4:2:0 against 12.5 um at 4:4:4 and 9.1 um as a PNG, each station's edge
+        # fit being limited by the chroma samples it has; no restoration gets that back
+        warnings.append("the beads differ from the plate mostly in colour, which this JPEG keeps at half "
+                        "resolution (4:2:0 chroma): the widths scatter about twice what a PNG/TIFF scan "
+                        "(or a JPEG saved with 4:4:4 chroma) gives; rescan lossless for tighter widths")
     if meas.sd_scale >= NOISY_SD_SCALE or meas.sd_floor_mm >= NOISY_SD_FLOOR_MM:
         warnings.append(f"the widths scatter along the tracks {meas.sd_scale:.1f}x their edge fits' sd plus "
                         f"{meas.sd_floor_mm * 1000:.1f} um (JPEG blocks, plate grain, glare or focus; width_sd_mm "

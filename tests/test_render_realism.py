@@ -505,6 +505,7 @@ def test_a_light_plates_jpeg_streak_in_colour_alone_is_not_glare(printed, tmp_pa
     luma, color = load_image(path)
     proj, channel = bead_channel(luma, color, man, res.registration, chroma_halved=True)
     assert channel.used and channel.chroma_restored
+    assert sum("4:2:0 chroma" in w for w in res.summary["warnings"]) == 1
     smp = reference_stations(man)[0]
     share = {}
     for name, img in (("colour", proj), ("luma", luma)):
