@@ -74,7 +74,7 @@ against 0.0382 with one wobble, Kb 0.218 against 0.221) while the intervals narr
 ~27 %: over seeds 0-10 of bench_e2e 2 tau and 3 Kb intervals missed (one wobble, same
 seeds: 0 and 1). Part of what is left there is the measurement's per-station sd the fit
 weighs by (the own part, width_sd_own_mm: error / sd 1.7 on the fifth of the stations with
-the smallest sd, 0.34 on the largest; README, "Is each station's sd what its error is?");
+the smallest sd, 0.34 on the largest; docs/MEASUREMENT.md, "Is each station's sd what its error is?");
 with the sd recalibrated per scan as well, tau centred but Kb stayed ~5 % high with the
 narrower intervals (seeds 0-11: coverage 10/12 and 7/12, against 12/12 and 11/12), and the
 whole calibrated sd (width_sd_mm since 2026-11-26) as the white term with one wobble

@@ -30,7 +30,7 @@ fit's Laplace approximation, each parameter's interval the union of the two. Mea
   short wobble alone 9 / 6 / 12 (MCMC), 11 / 8 / 11 (Laplace);
 - Bowden, 8 seeds (`pa+backpressure+thermal+scan_bias+view_light`, BIC 300-530 lower with
   the short wobble): tau 7/8, thermal a and tau_s 8/8, Kb 7/8, w_sat 8/8, against 5, 5, 4,
-  7, 6 of 8 by the default alone in the run before (README, the same scenes, before the
+  7, 6 of 8 by the default alone in the run before (docs/TRUST.md, the same scenes, before the
   per-scan sd); trusted 5/8 with one tau outside its
   interval (0.758 [0.689, 0.792]: the short fit moved tau down there), against 3/8 with two.
 

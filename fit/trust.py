@@ -53,7 +53,7 @@ Problems
   exported pressure-advance value would leave its 95 % interval (:func:`offset_riders`).
   The posterior of b0 is narrower than that prior: the model's shape places the offset,
   and where the model and the bead's wander disagree it places it wrong. Measured on the
-  Bowden Adventurer 3 scene (README): thermal's long tail, b0 and b1 are one direction in
+  Bowden Adventurer 3 scene (docs/TRUST.md): thermal's long tail, b0 and b1 are one direction in
   the likelihood; uncalibrated, b0 came out 15 um off (3 posterior sds) and
   thermal.tau_s read 80 s [56, 114] for a truth of 25 s, "trusted" (15 um moves it by 2.8
   sds: named); calibrated (prior sd 4 um) the fit still pulled b0 8 um from the reference
@@ -79,7 +79,7 @@ STRUCTURE_P = 0.01
 PARETO_K_BAD = 0.7
 PARETO_K_SHARE = 0.01
 #: How far (mm) the width offset that the model infers from uncalibrated widths can be
-#: off: on the Bowden Adventurer 3 scene (README, widths from the constant-speed reference
+#: off: on the Bowden Adventurer 3 scene (docs/TRUST.md, widths from the constant-speed reference
 #: that never settled) scan_bias.b0 read -30 and -31 um on seeds 6 and 2 for a true -45
 #: (posterior sds 5 um: 3 sds off), -34 um at the MAP of session 17. With a calibrated
 #: prior the doubt is 2 prior sds, when that is less.
