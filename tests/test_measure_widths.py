@@ -471,3 +471,51 @@ def test_oblique_needs_a_steep_and_straight_centre_line():
         cc = slope * s + rng.normal(0, 0.002, len(s))
         got = oblique(np.zeros(len(s), int), s, cc, np.ones(len(s), bool))
         assert (got.mean() > 0.9) if flagged else not got.any()
+
+
+def test_a_few_saturated_pixels_keep_the_station_and_a_clipped_crest_flags_it():
+    """Glare specks saturate a few pixels of a bead without moving its edges; a crest
+    clipped over most of the bead widens it (measure/widths.py SATURATED_SHARE_MAX). On this
+    render with glare streaks 47 % of the stations have a saturated pixel; they stay valid
+    and read like the rest of their track. The same scene with one bead over-exposed 2.5x
+    in a patch of the picture has that patch flagged, and only that patch."""
+    import cv2
+
+    from measure.camera import Camera
+    from measure.render import render
+    man = scene_manifest()
+    r = render(man, None, Camera.flatbed(scene_region(man), dpi=600), seed=1, plate="dark",
+               realism="profile,glare")
+    reg = register(gray_of(r), man)
+    tb = measure_widths(gray_of(r), man, reg, color=r.image).table
+    assert tb.valid.mean() > 0.9 and not np.any(tb.flag == "glare")
+    e = tb.width_mm - r.table.width_mm
+    for k in np.unique(tb.track):
+        ok = tb.valid & (tb.track == k)
+        assert np.percentile(np.abs(e[ok] - np.median(e[ok])), 95) < 0.008
+
+    # over-expose the widest bead (track 5, 1.6 mm) between x = 35 and 50 mm
+    img = r.image.astype(np.float32)
+    (u0, v0), (u1, v1) = r.camera.project(np.array([[35.0, 42.0], [50.0, 48.0]]))
+    rows = slice(int(min(v0, v1)), int(max(v0, v1)))
+    cols = slice(int(min(u0, u1)), int(max(u0, u1)))
+    img[rows, cols] *= 2.5
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+    tb2 = measure_widths(g, man, reg, color=img).table
+    patch = (tb2.track == 5) & (tb2.x_mm > 36) & (tb2.x_mm < 49)
+    assert np.mean(tb2.flag[patch] == "glare") > 0.8
+    assert np.mean(tb2.flag[~patch] == "glare") < 0.01
+
+    # a saturated blob three times wider than the 0.6 mm bead (track 2, y = 30 mm) fills the
+    # profile's window: no edge pair, but it is no absence either. The picture 1.5x
+    # over-exposed as a whole (every crest clipped: exposure, not glare), so that only the
+    # blob's own saturation can say so (without it: 15 of 15 stations "missing")
+    img = np.clip(r.image.astype(np.float32) * 1.5, 0, 255).astype(np.uint8)
+    (u0, v0), (u1, v1) = r.camera.project(np.array([[52.0, 29.0], [58.0, 31.0]]))
+    img[int(min(v0, v1)):int(max(v0, v1)), int(min(u0, u1)):int(max(u0, u1))] = 255
+    g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+    tb3 = measure_widths(g, man, reg, color=img).table
+    blob = (tb3.track == 2) & (tb3.x_mm > 53) & (tb3.x_mm < 57)
+    assert not np.any(tb3.flag[blob] == "missing") and not np.any(tb3.valid[blob] & (tb3.width_mm[blob] < 0.5))
+    assert np.mean(tb3.valid[~blob & (tb3.track == 2)]) > 0.9       # the rest of that bead is measured
