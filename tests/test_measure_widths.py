@@ -519,3 +519,16 @@ def test_a_few_saturated_pixels_keep_the_station_and_a_clipped_crest_flags_it():
     blob = (tb3.track == 2) & (tb3.x_mm > 53) & (tb3.x_mm < 57)
     assert not np.any(tb3.flag[blob] == "missing") and not np.any(tb3.valid[blob] & (tb3.width_mm[blob] < 0.5))
     assert np.mean(tb3.valid[~blob & (tb3.track == 2)]) > 0.9       # the rest of that bead is measured
+
+    # a saturated white band on the plate 0.2 mm beside the 0.8 mm bead (track 3, y = 35 mm;
+    # a plate logo's letter) is in its window and throws the edge pair (without the rule
+    # 15 of 15 stations "faint"); beads without glare, so only the band is saturated
+    r = render(man, None, Camera.flatbed(scene_region(man), dpi=600), seed=1, plate="dark", realism="profile")
+    img = r.image.copy()
+    (u0, v0), (u1, v1) = r.camera.project(np.array([[30.0, 35.6], [36.0, 36.4]]))
+    img[int(min(v0, v1)):int(max(v0, v1)), int(min(u0, u1)):int(max(u0, u1))] = 255
+    g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+    tb4 = measure_widths(g, man, reg, color=img).table
+    band = (tb4.track == 3) & (tb4.x_mm > 31) & (tb4.x_mm < 35)
+    assert np.mean(tb4.flag[band] == "glare") > 0.8
+    assert np.mean(tb4.valid[(tb4.track == 3) & ((tb4.x_mm < 29) | (tb4.x_mm > 37))]) > 0.9
