@@ -511,7 +511,11 @@ def test_a_light_plates_jpeg_streak_in_colour_alone_is_not_glare(printed, tmp_pa
     for name, img in (("colour", proj), ("luma", luma)):
         m = measure_widths(img, smp, res.registration, manifest=man, color=color)
         share[name] = m.glare_streak[m.table.valid].mean()
-    assert share["colour"] > 0.5 and share["luma"] < 0.1
+    # the scene's premise: streaks in the colour projection on a large share of the reference
+    # (0.49 on one machine, above 0.5 on another with the same pinned versions: the JPEG
+    # codec and resampling take different SIMD paths),
+    # almost none in luminance
+    assert share["colour"] > 0.35 and share["luma"] < 0.1
     cal = res.summary["apparent_width"]
     assert cal["glare_bracket_mm"] is None
     ok = res.table.valid & (r.table.width_mm > 0)
