@@ -33,7 +33,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
+from numba import njit, prange
 from scipy.special import erf
 
 SQRT2 = np.sqrt(2.0)
@@ -89,32 +92,81 @@ def edge_pair(t, p) -> np.ndarray:
     return b0 + b1 * t + 0.5 * A * (erf(z1) - erf(z2))
 
 
-def _model_and_jac(t, p, fixed_s: bool, side: float = 0.0):
-    """Model and Jacobian over the free parameters: PARAMS (without s when fixed_s), then
-    G, d when ``side`` is -1 or +1 (the streak on the low-t or high-t edge)."""
-    b0, b1, A, c, w, s = (p[:, k:k + 1] for k in range(6))
-    k = 1.0 / (SQRT2 * s)
-    z1 = (t - c + w / 2) * k
-    z2 = (t - c - w / 2) * k
-    e1, e2 = erf(z1), erf(z2)
-    g1 = _TWO_OVER_SQRTPI * np.exp(-z1 * z1)
-    g2 = _TWO_OVER_SQRTPI * np.exp(-z2 * z2)
-    f = b0 + b1 * t + 0.5 * A * (e1 - e2)
-    cols = [np.ones_like(t), t, 0.5 * (e1 - e2), 0.5 * A * k * (g2 - g1), 0.25 * A * k * (g1 + g2)]
-    if not fixed_s:
-        cols.append(0.5 * A / s * (z2 * g2 - z1 * g1))
-    if side:
-        G, dep = p[:, 6:7], p[:, 7:8]
-        d = t - (c + side * (w / 2 - dep))
-        g = np.exp(-0.5 * (d / s) ** 2)
-        f = f + G * g
-        dg = G * g * d / (s * s)            # d f / d c_g
-        cols[3] = cols[3] + dg
-        cols[4] = cols[4] + 0.5 * side * dg
-        if not fixed_s:                     # the streak is as wide as the blur
-            cols[5] = cols[5] + dg * d / s
-        cols += [g, -side * dg]
-    return f, np.stack(cols, axis=-1)
+@njit(cache=True, parallel=True)
+def _normal_kernel(t, y, wts, p, rows, fixed_s, side, cost, JTJ, JTr):  # pragma: no cover - numba
+    """For profiles ``rows``: the weighted residual sum of squares ``cost`` and the normal
+    equations J^T W J, J^T W r of the edge pair (plus the streak when ``side`` != 0) at
+    parameters p[rows], written into row ii of the outputs for profile rows[ii].
+
+    Fused and compiled: evaluating the model and Jacobian as (N, M, k) numpy arrays and
+    multiplying them was 90 % of a 12 MP photo's measurement (erf, exp and copies)."""
+    k = JTJ.shape[1]
+    m = t.shape[1]
+    for ii in prange(len(rows)):
+        i = rows[ii]
+        b0, b1, A, c, w, s = p[i, 0], p[i, 1], p[i, 2], p[i, 3], p[i, 4], p[i, 5]
+        kk = 1.0 / (math.sqrt(2.0) * s)
+        G = p[i, 6] if side != 0.0 else 0.0
+        cg = c + side * (w / 2 - p[i, 7]) if side != 0.0 else 0.0
+        col = np.empty(k)
+        a_ = np.zeros((k, k))
+        v = np.zeros(k)
+        cst = 0.0
+        for j in range(m):
+            wt = wts[i, j]
+            if wt == 0.0:
+                continue
+            tt = t[i, j]
+            z1 = (tt - c + w / 2) * kk
+            z2 = (tt - c - w / 2) * kk
+            g1 = _TWO_OVER_SQRTPI * math.exp(-z1 * z1)
+            g2 = _TWO_OVER_SQRTPI * math.exp(-z2 * z2)
+            half = 0.5 * (math.erf(z1) - math.erf(z2))
+            f = b0 + b1 * tt + A * half
+            col[0] = 1.0
+            col[1] = tt
+            col[2] = half
+            col[3] = 0.5 * A * kk * (g2 - g1)
+            col[4] = 0.25 * A * kk * (g1 + g2)
+            q = 5
+            if not fixed_s:
+                col[5] = 0.5 * A / s * (z2 * g2 - z1 * g1)
+                q = 6
+            if side != 0.0:
+                d = tt - cg
+                g = math.exp(-0.5 * (d / s) ** 2)
+                f += G * g
+                dg = G * g * d / (s * s)        # d f / d c_g
+                col[3] += dg
+                col[4] += 0.5 * side * dg
+                if not fixed_s:                 # the streak is as wide as the blur
+                    col[5] += dg * d / s
+                col[q] = g
+                col[q + 1] = -side * dg
+            r = (y[i, j] - f) * wt
+            cst += r * r
+            for u in range(k):
+                cu = col[u] * wt
+                v[u] += cu * r
+                for x in range(u, k):
+                    a_[u, x] += cu * col[x] * wt
+        for u in range(k):
+            JTr[ii, u] = v[u]
+            for x in range(u, k):
+                JTJ[ii, u, x] = a_[u, x]
+                JTJ[ii, x, u] = a_[u, x]
+        cost[ii] = cst
+
+
+def _normal_equations(t, y, wts, p, rows, fixed_s: bool, side: float):
+    """(cost (R,), J^T W J (R, k, k), J^T W r (R, k)) of profiles ``rows`` at parameters p:
+    the free parameters are PARAMS (without s when fixed_s), then G, d when ``side`` is
+    -1 or +1 (the streak on the low-t or high-t edge)."""
+    k = len(_free_columns(fixed_s, side))
+    n = len(rows)
+    cost, JTJ, JTr = np.empty(n), np.empty((n, k, k)), np.empty((n, k))
+    _normal_kernel(t, y, wts, p, rows, bool(fixed_s), float(side), cost, JTJ, JTr)
+    return cost, JTJ, JTr
 
 
 def _free_columns(fixed_s: bool, side: float) -> list[int]:
@@ -178,10 +230,11 @@ def fit_streak(t, y, p_plain, side: float, height_mm, fixed_s: bool = True, weig
 
 
 def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None):
-    t = np.asarray(t, float)
-    y = np.asarray(y, float)
+    # one compiled signature: C-contiguous float64 (a broadcast t would compile another)
+    t = np.ascontiguousarray(t, dtype=float)
+    y = np.ascontiguousarray(y, dtype=float)
     p0 = np.asarray(p0, float)
-    wts = np.ones_like(y) if weights is None else np.asarray(weights, float)
+    wts = np.ones_like(y) if weights is None else np.ascontiguousarray(weights, dtype=float)
     db = np.zeros((len(t), 2)) if depth_bounds is None else depth_bounds
     out = [_fit_chunk(t[i:i + chunk], y[i:i + chunk], p0[i:i + chunk], fixed_s, wts[i:i + chunk], n_iter, side,
                       db[i:i + chunk])
@@ -196,53 +249,47 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
     n = len(t)
     free = _free_columns(fixed_s, side)
     npar = len(free)
-    p = p.copy()
+    p = np.array(p, dtype=float, order="C")       # a copy: the caller keeps its start values
     span = t[:, -1] - t[:, 0]
     step = np.abs(t[:, 1] - t[:, 0])
     lam = np.full(n, 1e-2)
-    f, J = _model_and_jac(t, p, fixed_s, side)
-    r = (y - f) * wts
-    cost = np.einsum("nm,nm->n", r, r)
-    eye = np.eye(npar)
-    # Profiles drop out of the iteration once converged: most need 4-6 steps.
     act = np.arange(n)
+    # the normal equations at the accepted point are all the iteration needs of the Jacobian
+    cost, JTJ, JTr = _normal_equations(t, y, wts, p, act, fixed_s, side)
+    eye = np.eye(npar)
+    trial_p = p.copy()
+    # Profiles drop out of the iteration once converged: most need 4-6 steps.
     for _ in range(n_iter):
         if len(act) == 0:
             break
-        ta, wa, ra, Ja, pa = t[act], wts[act], r[act], J[act], p[act]
-        Jw = Ja * wa[..., None]
-        JtT = Jw.transpose(0, 2, 1)
-        JTJ = JtT @ Jw                       # batched BLAS; einsum is ~5x slower here
-        JTr = (JtT @ ra[..., None])[..., 0]
-        diag = np.einsum("nii->ni", JTJ)
-        A = JTJ + lam[act, None, None] * (diag[:, :, None] * eye + 1e-12 * eye)
+        pa = p[act]
+        A_ = JTJ[act]
+        diag = np.einsum("nii->ni", A_)
+        A = A_ + lam[act, None, None] * (diag[:, :, None] * eye + 1e-12 * eye)
         try:
-            delta = np.linalg.solve(A, JTr[..., None])[..., 0]
+            delta = np.linalg.solve(A, JTr[act][..., None])[..., 0]
         except np.linalg.LinAlgError:
-            delta = _safe_solve(A, JTr)
+            delta = _safe_solve(A, JTr[act])
         trial = pa.copy()
         trial[:, free] += delta
         # Keep the geometry physical: positive width and blur, centre inside the window.
         trial[:, 4] = np.clip(trial[:, 4], 0.2 * step[act], 2 * span[act])
         if not fixed_s:
             trial[:, 5] = np.clip(trial[:, 5], 0.1 * step[act], 0.5 * span[act])
-        trial[:, 3] = np.clip(trial[:, 3], ta[:, 0], ta[:, -1])
+        trial[:, 3] = np.clip(trial[:, 3], t[act, 0], t[act, -1])
         if side:
             trial[:, 6] = np.clip(trial[:, 6], 0.0, None)
             trial[:, 7] = np.clip(trial[:, 7], depth_bounds[act, 0], depth_bounds[act, 1])
-        f_t, J_t = _model_and_jac(ta, trial, fixed_s, side)
-        r_t = (y[act] - f_t) * wa
-        cost_t = np.einsum("nm,nm->n", r_t, r_t)
+        trial_p[act] = trial
+        cost_t, JTJ_t, JTr_t = _normal_equations(t, y, wts, trial_p, act, fixed_s, side)
         better = cost_t < cost[act]
         ib = act[better]
         small = (np.abs(delta) <= 1e-6 * (np.abs(pa[:, free]) + 1e-3 * span[act, None])).all(axis=1)
         rel_gain = (cost[act] - cost_t) / np.maximum(cost[act], 1e-300)
-        p[ib], r[ib], J[ib], cost[ib] = trial[better], r_t[better], J_t[better], cost_t[better]
+        p[ib], cost[ib], JTJ[ib], JTr[ib] = trial[better], cost_t[better], JTJ_t[better], JTr_t[better]
         lam[act] = np.where(better, lam[act] * 0.3, lam[act] * 10.0)
         done = (better & (small | (rel_gain < 1e-9))) | (lam[act] > 1e8)
         act = act[~done]
-    Jw = J * wts[..., None]
-    JTJ = Jw.transpose(0, 2, 1) @ Jw
     m_eff = wts.sum(axis=1)
     dof = np.maximum(m_eff - npar, 1)
     var = cost / dof

@@ -70,3 +70,39 @@ def test_a_glare_streak_on_one_flank_is_fitted_and_the_width_recovered(side):
     assert np.all(right.rms < 0.7 * wrong.rms)
     z = (right.width - w) / right.width_sd
     assert 0.55 < np.mean(np.abs(z) < 1) < 0.8
+
+
+@pytest.mark.parametrize("fixed_s, side", [(False, 0.0), (True, 0.0), (True, 1.0), (False, -1.0)])
+def test_compiled_normal_equations_match_finite_differences(fixed_s, side):
+    """The fused kernel's cost, J^T W J and J^T W r against a central-difference Jacobian of
+    the model written out here from the module docstring (edge pair + streak
+    G exp(-(t - c_g)^2 / 2 s^2), c_g = c + side (w/2 - d)), with a 0/1 mask."""
+    from measure.edges import _free_columns, _normal_equations
+
+    rng = np.random.default_rng(4)
+    t, y, p = _profiles(6, 1.0, 0.02, rng)
+    p = np.column_stack([p, np.full(6, 0.04), np.full(6, 0.08)])   # G, d
+
+    def model(q):
+        f = edge_pair(t, q[:, :6])
+        if side:
+            cg = q[:, 3:4] + side * (q[:, 4:5] / 2 - q[:, 7:8])
+            f = f + q[:, 6:7] * np.exp(-0.5 * ((t - cg) / q[:, 5:6]) ** 2)
+        return f
+
+    wts = (rng.uniform(size=t.shape) > 0.1).astype(float)
+    free = _free_columns(fixed_s, side)
+    cols = []
+    for k in free:
+        h = 1e-6 * max(1.0, abs(p[:, k]).max())
+        hi, lo = p.copy(), p.copy()
+        hi[:, k] += h
+        lo[:, k] -= h
+        cols.append((model(hi) - model(lo)) / (2 * h))
+    J = np.stack(cols, axis=-1) * wts[..., None]
+    r = (y - model(p)) * wts
+    cost, JTJ, JTr = _normal_equations(t, y, wts, p if side else p[:, :6].copy(), np.arange(6), fixed_s, side)
+    np.testing.assert_allclose(cost, (r * r).sum(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(JTJ, J.transpose(0, 2, 1) @ J, rtol=1e-5, atol=1e-6 * np.abs(JTJ).max())
+    np.testing.assert_allclose(JTr, (J.transpose(0, 2, 1) @ r[..., None])[..., 0], rtol=1e-5,
+                               atol=1e-6 * np.abs(JTr).max())
