@@ -25,7 +25,8 @@ a streak allowed onto the edge itself is an edge shift, and with the blur free t
 prime line's sections then disagreed by 18 um.
 
 :func:`fit_profiles` fits many profiles at once with a batched Levenberg-Marquardt
-(numpy, no Python loop over profiles): the same least-squares problem that
+(no Python loop over profiles; the model, its Jacobian and J^T J of every profile in one
+compiled kernel, :func:`_normal_kernel`): the same least-squares problem that
 ``scipy.optimize.least_squares`` would solve one profile at a time, ~100x faster.
 The covariance is ``inv(J^T J) * RSS / (M - p)`` (residual variance scaled).
 """
