@@ -17,7 +17,7 @@ import numpy as np
 from calib.errors import UserError
 from calib.fileio import atomic_write_text
 from measure.imageio import jpeg_chroma_subsampled, load_image
-from measure.placement import Placement, placement, track_speeds
+from measure.placement import Placement, parallel_lines_warning, placement, track_speeds
 from measure.register import FiducialsNotFound, Registration, register
 from measure.table import WidthTable
 from measure.widths import DETECTABLE_SNR, WidthMeasurement, measure_widths
@@ -119,6 +119,9 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     # the residual counts the printer's own track placement too (measure/placement.py)
     place = placement(table.track, meas.centre_mm, meas.nx, meas.ny, table.valid, track_speeds(manifest))
     warnings = list(reg.warnings) + list(cal.warnings)
+    along = parallel_lines_warning(meas.nx, meas.ny, table.valid, reg.method)
+    if along:
+        warnings.append(along)
     if valid_frac < 0.7:
         warnings.append(f"only {valid_frac:.0%} of the samples are valid; check the QA overlay")
     faint = float(np.mean(table.flag == "faint")) if len(table) else 0.0

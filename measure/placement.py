@@ -145,3 +145,40 @@ def track_speeds(manifest) -> dict:
     for k in np.unique(tr[on]):
         out[int(k)] = float(np.median(v[on & (tr == k)]))
     return out
+
+
+#: Test lines whose normals' doubled-angle resultant is at least this run (nearly) one way:
+#: 1 - 2f for a share f of stations at right angles to the rest, so 0.9 is under 5 % across.
+PARALLEL_RESULTANT = 0.9
+
+
+def heading_resultant(nx, ny, valid) -> float:
+    """Length (0..1) of the mean of (cos 2 theta, sin 2 theta) over the valid stations,
+    theta the angle of each station's normal (nx, ny): 1 when every test line runs the same
+    way (a track's two directions count alike), ~0 on a spiral.
+
+    Why it matters: without markers the picture holds the pose across the lines only. On
+    StartStopTestPLA1 (straight parallel lines, resultant ~1) the same photo with 1 LSB of
+    noise on 2 % of its pixels moved its stations 0.1-0.24 mm along their lines (median;
+    up to 0.5 mm) where the registration's place sd said 0.02-0.045 mm; on the spiral of
+    SpStartStopTest2 they moved 2-5 um (docs/MEASUREMENT.md)."""
+    ok = np.asarray(valid, bool) & np.isfinite(nx) & np.isfinite(ny)
+    if not ok.any():
+        return float("nan")
+    th = np.arctan2(np.asarray(ny, float)[ok], np.asarray(nx, float)[ok])
+    return float(np.hypot(np.mean(np.cos(2 * th)), np.mean(np.sin(2 * th))))
+
+
+def parallel_lines_warning(nx, ny, valid, method: str) -> str | None:
+    """The line `calib measure` prints when an automatic (markerless) pose holds test lines
+    that all run one way (:func:`heading_resultant` >= PARALLEL_RESULTANT), else None."""
+    if not method.startswith("auto"):
+        return None
+    r = heading_resultant(nx, ny, valid)
+    if not (r >= PARALLEL_RESULTANT):
+        return None
+    return ("the test lines all run one way and no markers were found: the picture fixes the pose across "
+            "them but along them only by their ends, so each station's place along its line (and the "
+            "time it was printed) may be off by tenths of a mm (a real photo of parallel lines moved "
+            "0.1-0.5 mm with a 1-LSB change); print the pattern's markers, or give --points at the "
+            "lines' ends")

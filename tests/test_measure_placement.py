@@ -5,6 +5,7 @@ the split recovers the within-track scatter, the placements' range and the slope
 claims no speed dependence where there is none.
 """
 import numpy as np
+import pytest
 
 from measure.placement import placement
 
@@ -57,3 +58,25 @@ def test_slope_in_two_directions_and_tracks_on_their_lines():
     track, c, nx, ny, ok = _stations(np.zeros(16), nrm, 0.005, rng)
     q = placement(track, c, nx, ny, ok, {k: float(v[k]) for k in range(16)})
     assert not q.notable and q.sentence() == "" and q.within_track_mm < 0.005
+
+
+def test_parallel_test_lines_under_an_automatic_pose_are_said_and_a_spiral_is_not():
+    """heading_resultant: 1 for lines one way (both directions of travel alike), ~0 on a
+    spiral, 1 - 2f with a share f at right angles; the warning only for an automatic pose."""
+    from measure.placement import heading_resultant, parallel_lines_warning
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    th = np.where(rng.uniform(size=n) < 0.5, np.pi / 2, -np.pi / 2) + rng.normal(0, 0.02, n)
+    nx, ny, ok = np.cos(th), np.sin(th), np.ones(n, bool)
+    assert heading_resultant(nx, ny, ok) > 0.99
+    assert "along them only by their ends" in parallel_lines_warning(nx, ny, ok, "auto+tracks+centres")
+    assert parallel_lines_warning(nx, ny, ok, "fiducials+tracks") is None
+    spiral = np.linspace(0, 8 * np.pi, n)
+    assert heading_resultant(np.cos(spiral), np.sin(spiral), ok) < 0.05
+    assert parallel_lines_warning(np.cos(spiral), np.sin(spiral), ok, "auto") is None
+    across = th.copy()
+    across[: n // 5] = 0.0                                    # a fifth of the stations across
+    assert heading_resultant(np.cos(across), np.sin(across), ok) == pytest.approx(0.6, abs=0.02)
+    assert parallel_lines_warning(np.cos(across), np.sin(across), ok, "auto") is None
+    assert parallel_lines_warning(nx, ny, ~ok, "auto") is None       # nothing valid: nothing said
