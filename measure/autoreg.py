@@ -671,7 +671,7 @@ def auto_register(gray, manifest, **kw):
 ICP_STATIONS = 4000
 
 
-def refine_with_centres(reg, x_mm, y_mm, nx, ny, centre_mm, valid):
+def refine_with_centres(reg, x_mm, y_mm, nx, ny, centre_mm, valid, track=None):
     """The registration moved so that the measured bead centre lines lie on the planned
     path: an ICP step (Besl & McKay 1992) with point-to-line distances (Chen & Medioni
     1992), each station's correspondence being the bead centre the width fit found along
@@ -681,8 +681,9 @@ def refine_with_centres(reg, x_mm, y_mm, nx, ny, centre_mm, valid):
     ``reg``; the new mapping (8 homography entries and k1, k2, as in measure.register)
     should put x_i where ``reg`` put that centre, along the image normal. Soft-L1 loss
     with a 0.03 mm scale: beads that are not where planned (blobs, ooze, a line bent by
-    the nozzle) are outliers. Returns a new Registration (method + "+centres"), or
-    ``reg`` when there are fewer than 50 usable stations."""
+    the nozzle) are outliers. Returns a new Registration (method + "+centres") whose place
+    covariance is that of the new pose (:func:`icp_covariance`, stations clustered by
+    ``track`` when given), or ``reg`` when there are fewer than 50 usable stations."""
     from dataclasses import replace
 
     from scipy import optimize
@@ -705,22 +706,102 @@ def refine_with_centres(reg, x_mm, y_mm, nx, ny, centre_mm, valid):
     mp = _Mapping(reg.H, reg.image_size, True, p)
     x0 = mp.x0(reg.distortion["k1"], reg.distortion["k2"])
     n_st = len(p)
+    # The start pose holds what no station constrains (along a set of parallel lines the
+    # homography's stretch and shear trade with perspective and the lens): a pull, in mm,
+    # on where the new pose puts 9 points spread over the stations, of sd START_SD_MM. A
+    # weak pull on the normalised homography entries instead let the along-line scale of
+    # synthetic parallel lines collapse tenfold.
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    ctrl = np.array([[u, v] for u in (lo[0], (lo[0] + hi[0]) / 2, hi[0]) for v in (lo[1], (lo[1] + hi[1]) / 2, hi[1])])
+    ctrl_uv = reg.project(ctrl)
+    ctrl_ppm = reg.px_per_mm(ctrl)
+    # Lens terms: over a pattern that fills part of the picture k1 and k2 trade off, and a
+    # free k2 runs off (-0.7 on a 12 MP phone render); their pull to 0 costs as much as a
+    # 10 um misfit of every station would at |k1| = 0.2, |k2| = 0.1 (real phone lenses
+    # stay inside that)
+    w = 0.01 * np.sqrt(n_st)
+
+    def stations(x):
+        return np.sum((mp.project(x, p) - target) * nimg, axis=1) / ppm
 
     def resid(x):
-        r = np.sum((mp.project(x, p) - target) * nimg, axis=1) / ppm
-        # a weak pull to the start keeps directions no station constrains (along a set of
-        # parallel lines) where they were. Lens terms: over a pattern that fills part of
-        # the picture k1 and k2 trade off, and a free k2 runs off (-0.7 on a 12 MP phone
-        # render); their pull costs as much as a 10 um misfit of every station would at
-        # |k1| = 0.2, |k2| = 0.1 (real phone lenses stay inside that)
-        w = 0.01 * np.sqrt(n_st)
-        return np.concatenate([r, 1.0 * (x[:8] - x0[:8]), [w * x[8] / 0.2, w * x[9] / 0.1]])
+        pull = ((mp.project(x, ctrl) - ctrl_uv) / ctrl_ppm[:, None]).ravel() * (ICP_SCALE_MM / START_SD_MM)
+        return np.concatenate([stations(x), pull, [w * x[8] / 0.2, w * x[9] / 0.1]])
 
-    sol = optimize.least_squares(resid, x0, method="trf", loss="soft_l1", f_scale=0.03, x_scale="jac",
+    sol = optimize.least_squares(resid, x0, method="trf", loss="soft_l1", f_scale=ICP_SCALE_MM, x_scale="jac",
                                  max_nfev=50)
     xs = sol.x
     H = mp.H(xs)
     k1, k2 = mp.k(xs)
     dist = dict(reg.distortion, k1=float(k1), k2=float(k2))
+    groups = np.asarray(track)[idx] if track is not None else np.arange(n_st)
+    cov = icp_covariance(stations, resid, xs, groups)
+    from measure.register import place_covariance
     return replace(reg, H=H / H[2, 2], distortion=dist, method=reg.method + "+centres",
-                   info=dict(reg.info), warnings=list(reg.warnings))
+                   info=dict(reg.info), warnings=list(reg.warnings),
+                   place_cov_mm2=place_covariance(mp, xs, cov, reg.place_pts_mm))
+
+
+#: :func:`refine_with_centres`: the soft-L1 scale of the stations' misfit (mm), and the
+#: sd (mm) of the start pose at any point, which its pull carries: the track refinement's
+#: pose sat 0.05-0.16 mm off along the lines where the centres held it (0.107 mm on a
+#: flatbed render of PLA1's G-code, 0.16 on SpStartStopTest2; its Laplace sd said
+#: 0.026-0.056)
+ICP_SCALE_MM = 0.03
+START_SD_MM = 0.15
+
+
+def icp_covariance(stations, resid, x, groups, h: float = 1e-7) -> np.ndarray:
+    """Covariance of the ICP pose ``x`` (10,) of :func:`refine_with_centres`: the sandwich
+    Cov = B^-1 M B^-1 of its M-estimator (Huber 1967) under a random-effects model of the
+    stations' misfits, each track k laid off its line as a whole:
+
+        psi(r_i) = u_k(i) + e_i,   Var u_k = tau^2,   Var e_i = sigma^2
+        B = J^T Psi' J,   M = sigma^2 J_s^T J_s + tau^2 sum_k q_k q_k^T + (priors),
+        q_k = sum_{i in k} J_i
+
+    r the residual vector ``resid`` (the stations' misfits ``stations(x)`` in mm, then the
+    pulls to the start and the 2 lens priors), J its Jacobian (J_s the stations' rows), psi
+    the soft-L1 influence r / sqrt(1 + (r/c)^2) and psi' its slope. sigma^2 is the variance
+    of the stations' psi about their track's mean, tau^2 the variance of the track means
+    less their own noise (method of moments), k over the ``groups`` (a station's track).
+    The pulls and lens priors are pseudo-observations of sd ICP_SCALE_MM in residual units
+    (the pulls' weight makes that START_SD_MM at each of their points), so directions no
+    station constrains keep the start's uncertainty.
+
+    Why: a printer lays each track off its commanded line as a whole (0.1-0.2 mm on
+    StartStopTestPLA1, measure/placement.py), so along straight parallel lines the pose is
+    set by the few tracks that cross them, and their placements, not hundreds of stations'
+    noise, say how well: the centres moved PLA1's pose 0.23 mm along its lines, where the
+    Laplace sd of the step before said 0.026 mm. The random-effects meat rather than the
+    cluster-robust one (Liang & Zeger 1986): that needs many clusters in every direction,
+    and with 3 tracks across it read 0.44 of the true spread."""
+    x = np.asarray(x, float)
+    r = resid(x)
+    n_st = len(stations(x))
+    J = np.empty((len(r), len(x)))
+    for k in range(len(x)):
+        step = h * max(1.0, abs(x[k]))
+        xp = x.copy()
+        xp[k] += step
+        J[:, k] = (resid(xp) - r) / step
+    dpsi = (1.0 + (r / ICP_SCALE_MM) ** 2) ** -1.5
+    B = J.T @ (dpsi[:, None] * J)
+    # the random-effects variances of the stations' influences psi (their scores' parts)
+    z = 1.0 + (r[:n_st] / ICP_SCALE_MM) ** 2
+    psi, Js = r[:n_st] / np.sqrt(z), J[:n_st]
+    _, inv = np.unique(np.asarray(groups), return_inverse=True)
+    G = inv.max() + 1
+    n_k = np.bincount(inv, minlength=G).astype(float)
+    m_k = np.bincount(inv, weights=psi, minlength=G) / np.maximum(n_k, 1.0)
+    sigma2 = float(np.sum((psi - m_k[inv]) ** 2) / max(n_st - G, 1))
+    big = n_k >= 2
+    tau2 = max(float(np.var(m_k[big], ddof=1) - np.mean(sigma2 / n_k[big])), 0.0) if big.sum() >= 2 else 0.0
+    q = np.zeros((G, len(x)))
+    np.add.at(q, inv, Js)
+    M = sigma2 * (Js.T @ Js) + tau2 * (q.T @ q)
+    prior = slice(n_st, len(r))
+    Jp = dpsi[prior, None] * J[prior]
+    M += ICP_SCALE_MM ** 2 * (Jp.T @ Jp)
+    Bi = np.linalg.pinv(B)
+    return Bi @ M @ Bi

@@ -17,7 +17,7 @@ import numpy as np
 from calib.errors import UserError
 from calib.fileio import atomic_write_text
 from measure.imageio import jpeg_chroma_subsampled, load_image
-from measure.placement import Placement, parallel_lines_warning, placement, track_speeds
+from measure.placement import Placement, along_track_warning, placement, track_speeds
 from measure.register import FiducialsNotFound, Registration, register
 from measure.table import WidthTable
 from measure.widths import DETECTABLE_SNR, WidthMeasurement, measure_widths
@@ -84,7 +84,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         t0 = time.perf_counter()
         m0 = measure_widths(gray, manifest, reg, color=color, colour_axis=channel)
         t = m0.table
-        reg = refine_with_centres(reg, t.x_mm, t.y_mm, m0.nx, m0.ny, m0.centre_mm, t.valid)
+        reg = refine_with_centres(reg, t.x_mm, t.y_mm, m0.nx, m0.ny, m0.centre_mm, t.valid, t.track)
         reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0
     meas = measure_widths(gray, manifest, reg, color=color, colour_axis=channel)
     table = meas.table
@@ -119,7 +119,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     # the residual counts the printer's own track placement too (measure/placement.py)
     place = placement(table.track, meas.centre_mm, meas.nx, meas.ny, table.valid, track_speeds(manifest))
     warnings = list(reg.warnings) + list(cal.warnings)
-    along = parallel_lines_warning(meas.nx, meas.ny, table.valid, reg.method)
+    along = along_track_warning(meas.place_sd_mm, meas.nx, meas.ny, table.valid, reg.method)
     if along:
         warnings.append(along)
     if valid_frac < 0.7:

@@ -150,6 +150,9 @@ def track_speeds(manifest) -> dict:
 #: Test lines whose normals' doubled-angle resultant is at least this run (nearly) one way:
 #: 1 - 2f for a share f of stations at right angles to the rest, so 0.9 is under 5 % across.
 PARALLEL_RESULTANT = 0.9
+#: The user hears about the pose's along-track uncertainty when the valid stations' median
+#: place sd reaches this (mm): a quarter of a 0.4 mm nozzle's bead, 5 ms of a 20 mm/s line.
+ALONG_SD_WARN_MM = 0.1
 
 
 def heading_resultant(nx, ny, valid) -> float:
@@ -160,8 +163,7 @@ def heading_resultant(nx, ny, valid) -> float:
     Why it matters: without markers the picture holds the pose across the lines only. On
     StartStopTestPLA1 (straight parallel lines, resultant ~1) the same photo with 1 LSB of
     noise on 2 % of its pixels moved its stations 0.1-0.24 mm along their lines (median;
-    up to 0.5 mm) where the registration's place sd said 0.02-0.045 mm; on the spiral of
-    SpStartStopTest2 they moved 2-5 um (docs/MEASUREMENT.md)."""
+    up to 0.5 mm); on the spiral of SpStartStopTest2 they moved 2-5 um (docs/MEASUREMENT.md)."""
     ok = np.asarray(valid, bool) & np.isfinite(nx) & np.isfinite(ny)
     if not ok.any():
         return float("nan")
@@ -169,16 +171,21 @@ def heading_resultant(nx, ny, valid) -> float:
     return float(np.hypot(np.mean(np.cos(2 * th)), np.mean(np.sin(2 * th))))
 
 
-def parallel_lines_warning(nx, ny, valid, method: str) -> str | None:
-    """The line `calib measure` prints when an automatic (markerless) pose holds test lines
-    that all run one way (:func:`heading_resultant` >= PARALLEL_RESULTANT), else None."""
-    if not method.startswith("auto"):
+def along_track_warning(place_sd_mm, nx, ny, valid, method: str) -> str | None:
+    """The line `calib measure` prints when the registration places the valid stations
+    along their tracks no better than ALONG_SD_WARN_MM (median of ``place_sd_mm``, the
+    along-track sd of each station, measure/register.py), with the reason when it is an
+    automatic pose of lines that all run one way (:func:`heading_resultant`), else None."""
+    ok = np.asarray(valid, bool)
+    if place_sd_mm is None or not ok.any():
         return None
-    r = heading_resultant(nx, ny, valid)
-    if not (r >= PARALLEL_RESULTANT):
+    sd = float(np.median(np.asarray(place_sd_mm, float)[ok]))
+    if not sd >= ALONG_SD_WARN_MM:
         return None
-    return ("the test lines all run one way and no markers were found: the picture fixes the pose across "
-            "them but along them only by their ends, so each station's place along its line (and the "
-            "time it was printed) may be off by tenths of a mm (a real photo of parallel lines moved "
-            "0.1-0.5 mm with a 1-LSB change); print the pattern's markers, or give --points at the "
-            "lines' ends")
+    head = (f"the stations' place along their lines is known to +/-{sd:.2f} mm (median sd), and so the "
+            "time each was printed; their width_sd_mm carries it where the width changes along a line")
+    if method.startswith("auto") and heading_resultant(nx, ny, valid) >= PARALLEL_RESULTANT:
+        return (head + ": the test lines all run one way and no markers were found, so the picture fixes "
+                "the pose across them and along them only through the few tracks that cross them; print "
+                "the pattern's markers, or give --points at the lines' ends")
+    return head + "; print the pattern's markers, or give --points spread over the print"

@@ -60,23 +60,31 @@ def test_slope_in_two_directions_and_tracks_on_their_lines():
     assert not q.notable and q.sentence() == "" and q.within_track_mm < 0.005
 
 
-def test_parallel_test_lines_under_an_automatic_pose_are_said_and_a_spiral_is_not():
+def test_a_loose_along_track_place_is_said_with_its_figure_and_why_for_parallel_lines():
     """heading_resultant: 1 for lines one way (both directions of travel alike), ~0 on a
-    spiral, 1 - 2f with a share f at right angles; the warning only for an automatic pose."""
-    from measure.placement import heading_resultant, parallel_lines_warning
+    spiral, 1 - 2f with a share f at right angles. The warning comes from the stations'
+    along-track sd (>= ALONG_SD_WARN_MM), quotes it, and names parallel lines as the reason
+    only for an automatic pose of lines that run one way."""
+    from measure.placement import ALONG_SD_WARN_MM, along_track_warning, heading_resultant
 
     rng = np.random.default_rng(0)
     n = 2000
     th = np.where(rng.uniform(size=n) < 0.5, np.pi / 2, -np.pi / 2) + rng.normal(0, 0.02, n)
     nx, ny, ok = np.cos(th), np.sin(th), np.ones(n, bool)
+    loose, tight = np.full(n, 0.46), np.full(n, 0.014)
     assert heading_resultant(nx, ny, ok) > 0.99
-    assert "along them only by their ends" in parallel_lines_warning(nx, ny, ok, "auto+tracks+centres")
-    assert parallel_lines_warning(nx, ny, ok, "fiducials+tracks") is None
+    w = along_track_warning(loose, nx, ny, ok, "auto+tracks+centres")
+    assert "+/-0.46 mm" in w and "all run one way" in w
+    assert along_track_warning(tight, nx, ny, ok, "auto+tracks+centres") is None
+    assert along_track_warning(np.full(n, 0.99 * ALONG_SD_WARN_MM), nx, ny, ok, "auto") is None
+    # a loose pose from markers or points is said, without the parallel-lines reason
+    w = along_track_warning(loose, nx, ny, ok, "fiducials+tracks")
+    assert "+/-0.46 mm" in w and "all run one way" not in w
     spiral = np.linspace(0, 8 * np.pi, n)
     assert heading_resultant(np.cos(spiral), np.sin(spiral), ok) < 0.05
-    assert parallel_lines_warning(np.cos(spiral), np.sin(spiral), ok, "auto") is None
+    assert "all run one way" not in along_track_warning(loose, np.cos(spiral), np.sin(spiral), ok, "auto")
     across = th.copy()
     across[: n // 5] = 0.0                                    # a fifth of the stations across
     assert heading_resultant(np.cos(across), np.sin(across), ok) == pytest.approx(0.6, abs=0.02)
-    assert parallel_lines_warning(np.cos(across), np.sin(across), ok, "auto") is None
-    assert parallel_lines_warning(nx, ny, ~ok, "auto") is None       # nothing valid: nothing said
+    assert along_track_warning(loose, nx, ny, ~ok, "auto") is None       # nothing valid: nothing said
+    assert along_track_warning(None, nx, ny, ok, "auto") is None

@@ -165,3 +165,70 @@ def test_place_covariance_of_a_translation_is_the_translation():
     sd_x_mm = 0.001 * 500 / 10.0            # si = 500 px, 10 px/mm
     assert np.allclose(np.sqrt(C[:, 0, 0]), sd_x_mm, rtol=1e-3)
     assert np.allclose(C[:, 1, 1], 0.0, atol=1e-12) and np.allclose(C[:, 0, 1], 0.0, atol=1e-12)
+
+
+def _icp_scene(n_across, place_sd_mm, rng):
+    """Stations every 0.5 mm on 10 horizontal lines (y 0-45 mm, x 0-80) and ``n_across``
+    vertical ones, each track laid off its line by N(0, place_sd_mm) as a whole, plus
+    0.01 mm of station noise: (x, y, nx, ny, centre, track)."""
+    xs, ys, nxs, nys, trk = [], [], [], [], []
+    for k, y in enumerate(np.linspace(0, 45, 10)):
+        x = np.arange(0, 80, 0.5)
+        xs += [x]; ys += [np.full_like(x, y)]; nxs += [np.zeros_like(x)]; nys += [np.ones_like(x)]
+        trk += [np.full(len(x), k)]
+    for k, x0 in enumerate(np.linspace(5, 75, n_across)):
+        y = np.arange(0, 45, 0.5)
+        xs += [np.full_like(y, x0)]; ys += [y]; nxs += [np.ones_like(y)]; nys += [np.zeros_like(y)]
+        trk += [np.full(len(y), 100 + k)]
+    trk = np.concatenate(trk)
+    offset = rng.normal(0, place_sd_mm, trk.max() + 1)[trk]
+    centre = offset + rng.normal(0, 0.01, len(trk))
+    return (np.concatenate(xs), np.concatenate(ys), np.concatenate(nxs), np.concatenate(nys), centre, trk)
+
+
+def _icp_start():
+    """A 10 px/mm pose to start the centres' refinement from (the truth of _icp_scene),
+    with the three bed points its place covariance is reported at."""
+    from measure.register import Registration
+
+    return Registration(H=np.array([[10.0, 0, 100], [0, 10.0, 150], [0, 0, 1]]),
+                        distortion={"center_px": (499.5, 399.5), "f_px": 1000.0, "k1": 0.0, "k2": 0.0},
+                        residual_mm=float("nan"), n_markers=0, mirrored=False, method="auto+tracks",
+                        image_size=(1000, 800), place_pts_mm=np.array([[40.0, 22.5], [5.0, 22.5], [75.0, 40.0]]),
+                        place_cov_mm2=np.zeros((3, 2, 2)))
+
+
+def test_the_centres_pose_reports_the_along_line_spread_the_track_placements_cause():
+    """Monte Carlo known answer for measure.autoreg.icp_covariance: horizontal lines hold
+    the pose in y; in x only the vertical tracks do, each laid 0.1 mm off as a whole (a
+    printer's placement), so the pose's x error is their mean's: ~0.1/sqrt(6) mm. The
+    reported along-line sd must match the spread over 40 prints (the per-station sandwich
+    would say 0.01/sqrt(540) mm, 100x less), and without any vertical track it covers the
+    pose's drift."""
+    from measure.autoreg import refine_with_centres
+
+    start = _icp_start()
+    P = start.place_pts_mm
+    ex, ey = np.array([[1.0, 0.0]] * len(P)), np.array([[0.0, 1.0]] * len(P))
+    rng = np.random.default_rng(4)
+    err, sd = [], []
+    for _ in range(40):
+        x, y, nx, ny, c, trk = _icp_scene(6, 0.1, rng)
+        reg = refine_with_centres(start, x, y, nx, ny, c, np.ones(len(x), bool), trk)
+        # where the new pose puts the bed point the picture shows at P (truth: the start)
+        err.append(reg.unproject(start.project(P)) - P)
+        sd.append(np.column_stack([reg.place_sd_mm(P, ex), reg.place_sd_mm(P, ey)]))
+    err, sd = np.array(err), np.array(sd)
+    rms_err = np.sqrt(np.mean(err ** 2, axis=0))
+    ratio = np.sqrt(np.mean(sd ** 2, axis=0)) / rms_err
+    # measured 0.91-1.83, the most at the far corner (a sandwich from 6 clusters is loose,
+    # on the safe side there; 3 tracks across read 0.58-1.3; never the naive 100x)
+    assert np.all((ratio > 0.6) & (ratio < 2.2)), ratio
+    assert 0.03 < rms_err[0, 0] < 0.1                               # the premise: 0.04-0.06 mm
+    # no track across: the x stretch trades with perspective and the lens, unheld by any
+    # station; the pose drifts (0.1-0.4 mm) and the sd must say at least as much
+    for _ in range(5):
+        x, y, nx, ny, c, trk = _icp_scene(0, 0.1, rng)
+        reg = refine_with_centres(start, x, y, nx, ny, c, np.ones(len(x), bool), trk)
+        drift = np.abs(reg.unproject(start.project(P))[:, 0] - P[:, 0])
+        assert np.all(drift < 2 * reg.place_sd_mm(P, ex)), (drift, reg.place_sd_mm(P, ex))
