@@ -708,13 +708,14 @@ def refine_with_centres(reg, x_mm, y_mm, nx, ny, centre_mm, valid, track=None):
     n_st = len(p)
     # The start pose holds what no station constrains (along a set of parallel lines the
     # homography's stretch and shear trade with perspective and the lens): a pull, in mm,
-    # on where the new pose puts 9 points spread over the stations, of sd START_SD_MM. A
-    # weak pull on the normalised homography entries instead let the along-line scale of
-    # synthetic parallel lines collapse tenfold.
+    # on where the new pose puts 9 points spread over the stations, of sd PULL_SD_MM each.
+    # A weak pull on the normalised homography entries instead let the along-line scale of
+    # synthetic parallel lines collapse tenfold, and so did this one at 1.5 mm.
     lo, hi = p.min(axis=0), p.max(axis=0)
     ctrl = np.array([[u, v] for u in (lo[0], (lo[0] + hi[0]) / 2, hi[0]) for v in (lo[1], (lo[1] + hi[1]) / 2, hi[1])])
     ctrl_uv = reg.project(ctrl)
     ctrl_ppm = reg.px_per_mm(ctrl)
+    pull_w = ICP_SCALE_MM / PULL_SD_MM
     # Lens terms: over a pattern that fills part of the picture k1 and k2 trade off, and a
     # free k2 runs off (-0.7 on a 12 MP phone render); their pull to 0 costs as much as a
     # 10 um misfit of every station would at |k1| = 0.2, |k2| = 0.1 (real phone lenses
@@ -725,7 +726,7 @@ def refine_with_centres(reg, x_mm, y_mm, nx, ny, centre_mm, valid, track=None):
         return np.sum((mp.project(x, p) - target) * nimg, axis=1) / ppm
 
     def resid(x):
-        pull = ((mp.project(x, ctrl) - ctrl_uv) / ctrl_ppm[:, None]).ravel() * (ICP_SCALE_MM / START_SD_MM)
+        pull = ((mp.project(x, ctrl) - ctrl_uv) / ctrl_ppm[:, None]).ravel() * pull_w
         return np.concatenate([stations(x), pull, [w * x[8] / 0.2, w * x[9] / 0.1]])
 
     sol = optimize.least_squares(resid, x0, method="trf", loss="soft_l1", f_scale=ICP_SCALE_MM, x_scale="jac",
@@ -735,23 +736,29 @@ def refine_with_centres(reg, x_mm, y_mm, nx, ny, centre_mm, valid, track=None):
     k1, k2 = mp.k(xs)
     dist = dict(reg.distortion, k1=float(k1), k2=float(k2))
     groups = np.asarray(track)[idx] if track is not None else np.arange(n_st)
-    cov = icp_covariance(stations, resid, xs, groups)
+    cov = icp_covariance(stations, resid, xs, groups, n_pull=2 * len(ctrl), start_shift=START_SD_MM * pull_w)
     from measure.register import place_covariance
     return replace(reg, H=H / H[2, 2], distortion=dist, method=reg.method + "+centres",
                    info=dict(reg.info), warnings=list(reg.warnings),
                    place_cov_mm2=place_covariance(mp, xs, cov, reg.place_pts_mm))
 
 
-#: :func:`refine_with_centres`: the soft-L1 scale of the stations' misfit (mm), and the
-#: sd (mm) of the start pose at any point, which its pull carries: the track refinement's
-#: pose sat 0.05-0.16 mm off along the lines where the centres held it (0.107 mm on a
-#: flatbed render of PLA1's G-code, 0.16 on SpStartStopTest2; its Laplace sd said
-#: 0.026-0.056)
+#: :func:`refine_with_centres`: the soft-L1 scale of the stations' misfit (mm); the sd
+#: (mm) of the pull on each of the 9 points, which keeps the ICP from drifting where no
+#: station holds it; and the sd (mm) of the start pose's place as a whole (a shift of all
+#: 9 points alike), which :func:`icp_covariance` carries where no station holds the pose:
+#: the track refinement's pose sat 0.05-0.16 mm off along the lines where the centres
+#: held it (0.107 mm on a flatbed render of PLA1's G-code, 0.16 on SpStartStopTest2; its
+#: Laplace sd said 0.026-0.056), and 0.5-0.9 mm along the parallel lines of our retract
+#: pattern printed without markers (bench_autoreg: lines whose ends thin out, nothing
+#: across them).
 ICP_SCALE_MM = 0.03
-START_SD_MM = 0.15
+PULL_SD_MM = 0.15
+START_SD_MM = 0.5
 
 
-def icp_covariance(stations, resid, x, groups, h: float = 1e-7) -> np.ndarray:
+def icp_covariance(stations, resid, x, groups, n_pull: int = 0, start_shift: float = 0.0,
+                   h: float = 1e-7) -> np.ndarray:
     """Covariance of the ICP pose ``x`` (10,) of :func:`refine_with_centres`: the sandwich
     Cov = B^-1 M B^-1 of its M-estimator (Huber 1967) under a random-effects model of the
     stations' misfits, each track k laid off its line as a whole:
@@ -760,14 +767,15 @@ def icp_covariance(stations, resid, x, groups, h: float = 1e-7) -> np.ndarray:
         B = J^T Psi' J,   M = sigma^2 J_s^T J_s + tau^2 sum_k q_k q_k^T + (priors),
         q_k = sum_{i in k} J_i
 
-    r the residual vector ``resid`` (the stations' misfits ``stations(x)`` in mm, then the
-    pulls to the start and the 2 lens priors), J its Jacobian (J_s the stations' rows), psi
-    the soft-L1 influence r / sqrt(1 + (r/c)^2) and psi' its slope. sigma^2 is the variance
-    of the stations' psi about their track's mean, tau^2 the variance of the track means
-    less their own noise (method of moments), k over the ``groups`` (a station's track).
-    The pulls and lens priors are pseudo-observations of sd ICP_SCALE_MM in residual units
-    (the pulls' weight makes that START_SD_MM at each of their points), so directions no
-    station constrains keep the start's uncertainty.
+    r the residual vector ``resid`` (the stations' misfits ``stations(x)`` in mm, then
+    ``n_pull`` pulls to the start, (x, y) of each point in turn, and the rest lens priors),
+    J its Jacobian (J_s the stations' rows), psi the soft-L1 influence r / sqrt(1 + (r/c)^2)
+    and psi' its slope. sigma^2 is the variance of the stations' psi about their track's
+    mean, tau^2 the variance of the track means less their own noise (method of moments),
+    k over the ``groups`` (a station's track). The pulls' residuals err by the start pose's
+    own error: a shift of every point alike, sd ``start_shift`` in residual units in x and
+    in y, so directions no station constrains keep the start's uncertainty whatever the
+    pulls' weight; the lens priors are pseudo-observations of sd ICP_SCALE_MM.
 
     Why: a printer lays each track off its commanded line as a whole (0.1-0.2 mm on
     StartStopTestPLA1, measure/placement.py), so along straight parallel lines the pose is
@@ -800,8 +808,13 @@ def icp_covariance(stations, resid, x, groups, h: float = 1e-7) -> np.ndarray:
     q = np.zeros((G, len(x)))
     np.add.at(q, inv, Js)
     M = sigma2 * (Js.T @ Js) + tau2 * (q.T @ q)
-    prior = slice(n_st, len(r))
-    Jp = dpsi[prior, None] * J[prior]
-    M += ICP_SCALE_MM ** 2 * (Jp.T @ Jp)
+    pull = slice(n_st, n_st + n_pull)
+    Jp = dpsi[pull, None] * J[pull]
+    # the start's shift moves every x residual alike, and every y residual alike
+    sx, sy = Jp[0::2].sum(axis=0), Jp[1::2].sum(axis=0)
+    M += start_shift ** 2 * (np.outer(sx, sx) + np.outer(sy, sy))
+    lens = slice(n_st + n_pull, len(r))
+    Jl = dpsi[lens, None] * J[lens]
+    M += ICP_SCALE_MM ** 2 * (Jl.T @ Jl)
     Bi = np.linalg.pinv(B)
     return Bi @ M @ Bi
