@@ -151,8 +151,9 @@ def track_speeds(manifest) -> dict:
 #: 1 - 2f for a share f of stations at right angles to the rest, so 0.9 is under 5 % across.
 PARALLEL_RESULTANT = 0.9
 #: The user hears about the pose's along-track uncertainty when the valid stations' median
-#: place sd reaches this (mm): a quarter of a 0.4 mm nozzle's bead, 5 ms of a 20 mm/s line.
-ALONG_SD_WARN_MM = 0.1
+#: place sd reaches this (mm): a 0.05 mm shift moves a width by 5 um where it changes by
+#: 0.1 mm per mm of track, and a station's time by 2.5 ms on a 20 mm/s line.
+ALONG_SD_WARN_MM = 0.05
 
 
 def heading_resultant(nx, ny, valid) -> float:
@@ -182,10 +183,10 @@ def along_track_warning(place_sd_mm, nx, ny, valid, method: str) -> str | None:
     sd = float(np.median(np.asarray(place_sd_mm, float)[ok]))
     if not sd >= ALONG_SD_WARN_MM:
         return None
-    head = (f"the stations' place along their lines is known to +/-{sd:.2f} mm (median sd), and so the "
-            "time each was printed; their width_sd_mm carries it where the width changes along a line")
+    head = (f"the pose places the stations along their lines only to +/-{sd:.2f} mm (median sd), and so "
+            "the times they were printed; width_sd_mm carries it where the width changes along a line")
     if method.startswith("auto") and heading_resultant(nx, ny, valid) >= PARALLEL_RESULTANT:
         return (head + ": the test lines all run one way and no markers were found, so the picture fixes "
-                "the pose across them and along them only through the few tracks that cross them; print "
+                "the pose across them, and along them only through the few tracks that cross them; print "
                 "the pattern's markers, or give --points at the lines' ends")
     return head + "; print the pattern's markers, or give --points spread over the print"

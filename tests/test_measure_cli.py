@@ -41,7 +41,7 @@ def test_measure_writes_csv_overlay_and_summary(scan, capsys):
     qa = cv2.imread(str(d / "qa.png"))
     assert qa is not None and max(qa.shape[:2]) <= 2400
     err = capsys.readouterr().err
-    assert "valid, registration residual" in err and "along their tracks only" not in err
+    assert "valid, registration residual" in err and "along their lines only" not in err
 
 
 def _run_bad(d, scan_name, capsys, *extra, manifest="p.manifest.json"):

@@ -4,10 +4,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-#: A median along-track sd of the pose (mm) above which `calib measure` says so: a
-#: 0.05 mm shift moves a width by 5 um where it changes by 0.1 mm per mm of track
-ALONG_TRACK_NOTE_MM = 0.05
-
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
@@ -54,11 +50,6 @@ def run(args) -> int:
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "
           f"registration residual {res.registration.residual_mm:.3f} mm ({res.registration.method})",
           file=sys.stderr)
-    along = s["registration"].get("along_track_sd_mm")
-    if along is not None and along >= ALONG_TRACK_NOTE_MM:
-        print(f"calib measure: the pose holds the stations along their tracks only to +-{along:.2f} mm (median "
-              "sd: straight tracks fix it across, not along); where a width changes fast along a track its "
-              "sd carries that", file=sys.stderr)
     rec = res.registration.recovered_markers
     if rec:
         print(f"calib measure: marker(s) {', '.join(map(str, rec))} read by their whole printed pattern where the "
