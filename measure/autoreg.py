@@ -780,10 +780,16 @@ def icp_covariance(stations, resid, x, groups, n_pull: int = 0, start_shift: flo
     Why: a printer lays each track off its commanded line as a whole (0.1-0.2 mm on
     StartStopTestPLA1, measure/placement.py), so along straight parallel lines the pose is
     set by the few tracks that cross them, and their placements, not hundreds of stations'
-    noise, say how well: the centres moved PLA1's pose 0.23 mm along its lines, where the
-    Laplace sd of the step before said 0.026 mm. The random-effects meat rather than the
-    cluster-robust one (Liang & Zeger 1986): that needs many clusters in every direction,
-    and with 3 tracks across it read 0.44 of the true spread."""
+    noise, say how well: the centres moved PLA1's pose 0.19-0.23 mm along its lines, where
+    the Laplace sd of the step before said 0.026 mm. The random-effects meat rather than
+    the cluster-robust one (Liang & Zeger 1986): that needs many clusters in every
+    direction, and with 3 tracks across it read about half the true spread.
+
+    Only the start's shift is carried, not its stretch or turn: as large a turn at the
+    print's edge (0.5 mm) made the spiral renders' sd 0.09-0.14 mm for errors of 1-10 um
+    (circles turn onto themselves; the track refinement held the turn by the rest of the
+    layout); the retract render's start, sheared 0.9 mm at its edge, is covered by the
+    shift's sd at |z| <= 1.7 (bench_autoreg)."""
     x = np.asarray(x, float)
     r = resid(x)
     n_st = len(stations(x))
