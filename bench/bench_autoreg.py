@@ -2,11 +2,12 @@
 and how honestly it says where along a track each station sits.
 
 Scenes: prints of our own patterns on the virtual printer (Bowden truth), measured with
-the markers taken out of the manifest so the printed markers are only clutter:
+the markers taken out of the manifest:
 
-* the spiral-step pattern (tracks at every heading), and
-* the retract pattern (straight parallel lines: along them only the few tracks that
-  cross them hold the pose),
+* the spiral-step pattern (tracks at every heading), printed with its markers, which are
+  then only clutter, and
+* the retract pattern (straight parallel lines, nothing across them but the ruler's
+  ticks), printed without markers like a third-party print,
 
 each as a 400 dpi flatbed scan and as a 12 MP phone photo (25 deg tilt, barrel
 distortion, every phenomenon of measure/phenomena.py but the light gradient, JPEG 85).
@@ -14,9 +15,10 @@ The two realdata photos (../shared/realdata, when present) are measured as a use
 
 Figures: the pose's error against the true camera (RMS over the test tracks' stations,
 mm), the along-track error over the reported along-track sd (|z|, 90th percentile over
-the valid stations: ~1.6 when the sd is honest), the reported along sd, the bead-centre
-residual, and the time to find the pose (s: the coarse search, the track refinement and
-the first pass of widths for the centres' ICP).
+the valid stations: ~1.6 when the sd is honest), the reported along sd, and the time to
+find the pose (s: the coarse search, the track refinement and the first pass of widths
+for the centres' ICP); on the realdata photos, which have no truth, the bead-centre
+residual instead of the error.
 """
 from __future__ import annotations
 
@@ -56,9 +58,8 @@ def _evaluate(pattern: str, camera: str, seed: int = 0) -> dict:
     from patterns.profile import data_dir
 
     man = _pattern(pattern)
-    # the spiral is printed with its markers, then only clutter; the parallel lines are
-    # printed without, like a third-party print: with them, the markers' raster lines drew
-    # the coarse search to half the scale (0.25 against 0.72 at the true pose)
+    # the parallel lines are printed without markers: with them, the markers' raster lines
+    # drew the coarse search to half the scale (score 0.25 against 0.72 at the true pose)
     bare = _without_markers(man)
     spec, values, _ = load_truth(data_dir() / "truths" / "bowden.toml")
     r, _ = simulate_scan(man if pattern == "spiral" else bare, spec, values, camera, profile=man.printer, dpi=400.0,
@@ -81,7 +82,7 @@ def _evaluate(pattern: str, camera: str, seed: int = 0) -> dict:
     sd = m.place_sd_mm[ok]
     return {"refused": "", "err": float(np.sqrt(np.mean(err ** 2))), "z90": float(np.percentile(np.abs(along) / sd, 90)),
             "along95": float(np.percentile(np.abs(along), 95)), "sd": float(np.median(sd)),
-            "resid": float(reg.residual_mm), "time": float(reg.info.get("time_s", np.nan)),
+            "time": float(reg.info.get("time_s", np.nan)),
             "auto": reg.method.startswith("auto")}
 
 
