@@ -34,7 +34,7 @@ from fit.trust import _bound_problem
 #: intervals (it would soak up any static width-dependent signal of the physics); the
 #: view effects are the picture's (they would soak up bed tilt and heading).
 NOT_CANDIDATES = frozenset({"firmware_pa", "scan_bias", "scan_curve", "view_xy", "view_heading", "view_glare",
-                            "view_blur", "view_light"})
+                            "view_blur", "view_light", "view_shift"})
 #: A geometric candidate and the picture's nuisance that widths alone may not tell from
 #: it: a bed whose height varies over its area changes the width (A / h), and so does a
 #: picture whose light, focus or scale varies over its area (the apparent width's edge

@@ -780,6 +780,66 @@ class ViewLight(Effect):
         return out
 
 
+def _track_coordinate(ctx):
+    """One increasing coordinate for all stations, track after track: g = rank(track) K + s
+    (mm; K longer than any track), sorted; each station's g and the g range of its track."""
+    key = "track_coordinate"
+    if key not in ctx.cache:
+        s = np.asarray(ctx.s_mm, dtype=float)
+        _, rank = np.unique(np.asarray(ctx.s_track), return_inverse=True)
+        K = float(np.ptp(s)) + 10.0 if len(s) else 1.0
+        g = rank * K + s
+        order = np.argsort(g, kind="stable")
+        gs = g[order]
+        lo = np.full(rank.max() + 1 if len(s) else 0, np.inf)
+        hi = np.full(len(lo), -np.inf)
+        np.minimum.at(lo, rank, g)
+        np.maximum.at(hi, rank, g)
+        first = np.searchsorted(gs, lo[rank], side="left")
+        last = np.searchsorted(gs, hi[rank], side="right") - 1
+        ctx.cache[key] = (order, gs, g, lo[rank], hi[rank], first, last)
+    return ctx.cache[key]
+
+
+@register_effect
+class ViewShift(Effect):
+    """The picture's stations sitting off along their tracks, a measurement nuisance (never
+    proposed by ``diagnose``): a pose held across the test lines but loosely along them (a
+    markerless photo of lines that all run one way: `calib measure` prints its along-track
+    sd) puts every station's bed point a shift d = (dx, dy) mm from where the bead it shows
+    was laid, so the measured width is the laid width a little further along the track,
+
+        w_measured(s) = w(s + dx cos theta + dy sin theta)                          (mm)
+
+    theta: the station's heading; w between the track's own stations linearly interpolated,
+    held at its first and last. One shift for all stations, not the per-station sd the
+    measurement already widens each width by: on a print of one-way lines a shared shift
+    moves every line's start alike, which the fit would otherwise read as a change of tau
+    (0.33 mm on StartStopTestPLA1 is 3-16 ms at 20-100 mm/s). The prior is the
+    measurement's along-track sd (fit/measurement.py); default normal(0, 0.05 mm). All
+    zero: absent.
+    """
+
+    name = "view_shift"
+    params = (Param("dx_mm", "mm", 0.0, -3.0, 3.0, ("normal", 0.0, 0.05), doc="stations' shift along bed x"),
+              Param("dy_mm", "mm", 0.0, -3.0, 3.0, ("normal", 0.0, 0.05), doc="stations' shift along bed y"))
+
+    def width(self, ctx, w, p):
+        order, gs, g, lo, hi, first, last = _track_coordinate(ctx)
+        th = ctx.s_heading_rad
+        target = np.atleast_2d(np.clip(g + p["dx_mm"] * np.cos(th) + p["dy_mm"] * np.sin(th), lo, hi))
+        w = np.atleast_2d(np.asarray(w, dtype=float))
+        shape = (max(w.shape[0], target.shape[0]), len(g))
+        w, target = np.broadcast_to(w, shape), np.broadcast_to(target, shape)
+        j = np.searchsorted(gs, target, side="right") - 1
+        j = np.maximum(np.minimum(j, last - 1), first)       # the interval within the track
+        j1 = np.minimum(j + 1, last)
+        span = gs[j1] - gs[j]
+        frac = np.where(span > 0, (target - gs[j]) / np.where(span > 0, span, 1.0), 0.0)
+        ws, rows = w[:, order], np.arange(shape[0])[:, None]
+        return ws[rows, j] * (1.0 - frac) + ws[rows, j1] * frac
+
+
 # -----------------------------------------------------------------------------------
 # User effects
 

@@ -16,6 +16,11 @@ in two ways (issue #11 item 5, first step):
   on two (the sds from the sections' floor, measure/calibrate.py);
 * a caution in the trust verdict when a scan's widths are apparent and the model has no
   ``scan_bias``: an offset common to all widths can pass for back-pressure or flow.
+
+Its ``registration`` block's ``along_track_sd_mm`` (how far along their tracks the pose may
+have put the stations, measure/autoreg.py icp_covariance) is the prior sd of the scan's
+``view_shift`` (fit/effects.py ViewShift), which ``--model auto`` starts with when that sd
+reaches ALONG_SD_MM.
 """
 from __future__ import annotations
 
@@ -33,6 +38,12 @@ MIN_SD_MM = 0.001
 #: (its place doubt alone is 10 um: measure/calibrate.py PHOTO_OFFSET_SD_MM); flatbed
 #: scans read 1-6.3 um (bench_realism, bench_e2e's Bowden seeds, 2026-11-27).
 AUTO_SCAN_BIAS_SD_MM = 0.008
+#: A scan whose stations the pose places along their tracks only to this sd (mm, the
+#: median the summary gives) or worse gets ``view_shift`` from ``--model auto``: the
+#: threshold at which `calib measure` says so (measure/placement.py ALONG_SD_WARN_MM).
+ALONG_SD_MM = 0.05
+#: Floor (mm) on view_shift's prior sd: a pose held by markers says ~0.01 mm.
+MIN_SHIFT_SD_MM = 0.005
 
 
 def load_calibration(widths_path) -> dict | None:
@@ -48,12 +59,26 @@ def load_calibration(widths_path) -> dict | None:
     return cal if isinstance(cal, dict) else None
 
 
+def load_along_sd(widths_path) -> float | None:
+    """The median along-track sd (mm) of the stations' place that the summary next to
+    ``widths_path`` gives (None if there is none)."""
+    p = Path(widths_path)
+    try:
+        doc = json.loads(p.with_name(p.stem + ".summary.json").read_text())
+        v = float(doc["registration"]["along_track_sd_mm"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return v if np.isfinite(v) and v >= 0 else None
+
+
 def scan_states(data) -> list[dict]:
-    """Per scan of ``data`` (fit.data.FitData): name, widths path, calibration block or None."""
+    """Per scan of ``data`` (fit.data.FitData): name, widths path, calibration block or None,
+    and the along-track sd of its stations' place (mm) or None."""
     out = []
     for sc in data.scans:
         w = (getattr(sc, "source", None) or {}).get("widths")
-        out.append({"scan": sc.name, "widths": w, "calibration": load_calibration(w) if w else None})
+        out.append({"scan": sc.name, "widths": w, "calibration": load_calibration(w) if w else None,
+                    "along_sd_mm": load_along_sd(w) if w else None})
     return out
 
 
@@ -81,17 +106,22 @@ def b0_prior(cal: dict) -> dict:
 
 
 def prior_overrides(states: list[dict], param_names) -> dict[str, dict]:
-    """Prior overrides (fit.priors.load_priors_file format) for the scans' scan_bias.b0_mm."""
+    """Prior overrides (fit.priors.load_priors_file format) for the scans' scan_bias.b0_mm
+    and view_shift.dx_mm, dy_mm (normal(0, the along-track sd, floored at MIN_SHIFT_SD_MM))."""
     names = set(param_names)
     out = {}
     for st in states:
         cal = st["calibration"]
-        if cal is None:
-            continue
         for name in (f"scan_bias.b0_mm@{st['scan']}", "scan_bias.b0_mm"):
-            if name in names:
+            if cal is not None and name in names:
                 out[name] = b0_prior(cal)
                 break
+        sd = st.get("along_sd_mm")
+        for p in ("dx_mm", "dy_mm"):
+            for name in (f"view_shift.{p}@{st['scan']}", f"view_shift.{p}"):
+                if sd is not None and name in names:
+                    out[name] = {"prior": "normal", "mu": 0.0, "sd": max(float(sd), MIN_SHIFT_SD_MM)}
+                    break
     return out
 
 
@@ -116,7 +146,8 @@ def light_varies(angle_deg) -> bool:
     return bool(share[4] >= LIGHT_MIN_SHARE and share[:4].max() >= LIGHT_MIN_SHARE)
 
 
-def auto_start(scan: str, cal: dict | None, light: bool = False) -> tuple[str, dict[str, dict]]:
+def auto_start(scan: str, cal: dict | None, light: bool = False,
+               along_sd_mm: float | None = None) -> tuple[str, dict[str, dict]]:
     """(base model, prior overrides) where ``--model auto`` starts on a scan whose
     measurement block is ``cal``: ``pa+scan_bias`` with the prior above when the widths are
     apparent widths (its offset would otherwise be read as back-pressure or flow) or
@@ -125,16 +156,30 @@ def auto_start(scan: str, cal: dict | None, light: bool = False) -> tuple[str, d
     held tau on 91.7 % of 24 seeds, all carried scan_bias), else ``pa``; ``+view_light`` when ``light`` (:func:`light_varies`): beads whose flank faces a
     flatbed's lamp read ~2.5 um wider, and on bench_e2e's back-pressure scans that pulled Kb
     high (with it, 40 seeds: Kb 0.0034 lower on 39, tau 0.0007 s higher on 37, Kb's 90 %
-    coverage 85 -> 90 %, tau's 95 % both)."""
+    coverage 85 -> 90 %, tau's 95 % both); ``+view_shift`` with its prior when the pose
+    places the stations along their tracks only to ``along_sd_mm`` >= ALONG_SD_MM."""
     tail = "+view_light" if light else ""
+    shift = along_sd_mm is not None and along_sd_mm >= ALONG_SD_MM
+    if shift:
+        tail += "+view_shift"
+    state = [{"scan": scan, "calibration": cal, "along_sd_mm": along_sd_mm}]
+    shift_names = ["view_shift.dx_mm", "view_shift.dy_mm"] if shift else []
     if cal is None or (cal.get("applied") and not (cal.get("offset_sd_mm") or 0.0) >= AUTO_SCAN_BIAS_SD_MM):
-        return "pa" + tail, {}
-    return "pa+scan_bias" + tail, prior_overrides([{"scan": scan, "calibration": cal}], ["scan_bias.b0_mm"])
+        return "pa" + tail, prior_overrides(state, shift_names)
+    return "pa+scan_bias" + tail, prior_overrides(state, ["scan_bias.b0_mm", *shift_names])
 
 
-def notes(states: list[dict], has_scan_bias: bool) -> list[str]:
-    """One plain sentence per scan whose widths are apparent widths."""
+def notes(states: list[dict], has_scan_bias: bool, has_view_shift: bool = False) -> list[str]:
+    """One plain sentence per scan whose widths are apparent widths, and per scan whose
+    stations the pose places along their tracks only to ALONG_SD_MM or worse when the model
+    has no ``view_shift``."""
     out = []
+    for st in states:
+        sd = st.get("along_sd_mm")
+        if not has_view_shift and sd is not None and sd >= ALONG_SD_MM:
+            out.append(f"{st['scan']}: the picture places its stations along their tracks only to +-{sd:.2f} mm, "
+                       "one shift for all of them that the fit reads as tau or a delay: add view_shift to the "
+                       "model")
     for st in states:
         cal = st["calibration"]
         if cal is None or cal.get("applied"):

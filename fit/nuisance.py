@@ -31,7 +31,8 @@ NUISANCE_STARTS = {"view_glare": [{"view_glare.amp_mm": 0.005, "view_glare.theta
 DECISIVE_BIC = 10.0
 #: Effects whose values describe the bead or the picture, not a setting of the printer:
 #: nobody pastes them, so the verdict does not ask them to be unique or to stay put.
-NOT_PASTED = ("spread", "scan_bias", "scan_curve", "view_xy", "view_heading", "view_glare", "view_blur", "view_light")
+NOT_PASTED = ("spread", "scan_bias", "scan_curve", "view_xy", "view_heading", "view_glare", "view_blur", "view_light",
+              "view_shift")
 
 
 def pasted(name: str) -> bool:

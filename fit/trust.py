@@ -135,6 +135,13 @@ def _bound_problem(name: str, p: dict, prior: dict) -> str | None:
     return None
 
 
+#: Nuisance effects whose prior is a measurement's own figure (fit/measurement.py), and how
+#: many of its sds a fitted value may lie from it before the verdict says it stands in for
+#: something else.
+MEASURED_PRIOR = ("view_shift",)
+MEASURED_PRIOR_Z = 4.0
+
+
 #: A misfit is put down to the measurement when the reduced chi-square is at most this
 #: multiple of what a right model reads on the scan's own scatter (and that is above the bar).
 NOISE_EXPLAINS = 1.5
@@ -204,6 +211,22 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
             problems.append(msg)
             at_bound.append(name)
     checks["at_bound"] = at_bound
+    # a picture nuisance whose prior is what the measurement knows (view_shift: the pose's
+    # along-track sd) but that went far beyond it is taking a misfit for the picture's:
+    # on StartStopTestPLA1, pa+view_shift put the stations 2.9 mm along x where the pose
+    # allows 0.33 mm, and moved tau 1.05 -> 1.37 s
+    beyond = []
+    for name, p in params.items():
+        pr = priors.get(name) or {}
+        if name.split(".")[0] not in MEASURED_PRIOR or pr.get("kind") != "normal" or not pr.get("sd"):
+            continue
+        z = (float(p.get("median", math.nan)) - float(pr.get("mu", 0.0))) / float(pr["sd"])
+        if abs(z) > MEASURED_PRIOR_Z:
+            beyond.append(name)
+            problems.append(f"{name} = {float(p['median']):.3g} lies {abs(z):.0f} sd of what the picture allows "
+                            f"(+-{float(pr['sd']):.3g}) from it: the model lacks something that this nuisance "
+                            "mimics, and the values are pulled by it")
+    checks["beyond_measured_prior"] = beyond
 
     riders = offset_riders(doc)
     checks["offset_riders"] = riders

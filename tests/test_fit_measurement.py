@@ -151,3 +151,35 @@ def test_model_auto_carries_a_photos_loose_applied_offset_with_scan_bias():
     assert base == "pa+scan_bias" and pri == {"scan_bias.b0_mm": {"prior": "normal", "mu": 0.0, "sd": 0.0116}}
     edge = dict(CAL, offset_sd_mm=measurement.AUTO_SCAN_BIAS_SD_MM * 0.99)
     assert measurement.auto_start("s", edge) == ("pa", {})
+
+
+def test_a_loose_along_track_place_gives_view_shift_its_prior_and_auto_starts_with_it(tmp_path):
+    """The summary's registration.along_track_sd_mm (measure/autoreg.py icp_covariance)
+    becomes view_shift's prior sd (floored at MIN_SHIFT_SD_MM), per scan in joint fits;
+    --model auto starts with view_shift from ALONG_SD_MM on (0.33 mm: StartStopTestPLA1's
+    markerless pose), not below (0.023 mm: the spiral's), and a model without it hears why;
+    no summary, no prior."""
+    pairs = scan_with_summary(tmp_path, CAL)
+    doc = json.loads((tmp_path / "widths.summary.json").read_text())
+    doc["registration"] = {"along_track_sd_mm": 0.33}
+    (tmp_path / "widths.summary.json").write_text(json.dumps(doc))
+    assert measurement.load_along_sd(pairs[0][0]) == pytest.approx(0.33)
+    state = [{"scan": "a", "calibration": None, "along_sd_mm": 0.33},
+             {"scan": "b", "calibration": None, "along_sd_mm": 0.001}]
+    names = ["view_shift.dx_mm@a", "view_shift.dy_mm@a", "view_shift.dx_mm@b", "view_shift.dy_mm@b"]
+    pri = measurement.prior_overrides(state, names)
+    assert pri["view_shift.dy_mm@a"] == {"prior": "normal", "mu": 0.0, "sd": 0.33}
+    assert pri["view_shift.dx_mm@b"]["sd"] == measurement.MIN_SHIFT_SD_MM
+    base, pri = measurement.auto_start("s", CAL, along_sd_mm=0.33)
+    assert base == "pa+view_shift" and pri["view_shift.dx_mm"]["sd"] == pytest.approx(0.33)
+    base, pri = measurement.auto_start("s", UNCAL, along_sd_mm=0.33)
+    assert base == "pa+scan_bias+view_shift" and set(pri) == {"scan_bias.b0_mm", "view_shift.dx_mm",
+                                                             "view_shift.dy_mm"}
+    assert measurement.auto_start("s", CAL, along_sd_mm=0.023) == ("pa", {})
+    # a model without view_shift on such a scan gets a caution in the verdict; with it, none
+    said = measurement.notes(state, has_scan_bias=False, has_view_shift=False)
+    assert len(said) == 1 and said[0].startswith("a: ") and "+-0.33 mm" in said[0] and "add view_shift" in said[0]
+    assert measurement.notes(state, has_scan_bias=False, has_view_shift=True) == []
+    assert measurement.auto_start("s", CAL) == ("pa", {})
+    (tmp_path / "widths.summary.json").unlink()
+    assert measurement.load_along_sd(pairs[0][0]) is None

@@ -122,6 +122,23 @@ def test_verdict_rules():
     assert not assess(_doc(modes=[best, close])).trustworthy
 
 
+def test_a_view_shift_far_beyond_the_poses_along_track_sd_is_not_trusted():
+    """view_shift's prior is the measurement's along-track sd (fit/measurement.py); a fit
+    that puts the stations many of those sds away (StartStopTestPLA1: 2.9 mm for +-0.33)
+    lets a missing effect pass for the picture's, and is not trustworthy; within 4 sd it is."""
+    def with_shift(med, sd=0.33):
+        d = _doc()
+        d["params"]["view_shift.dx_mm"] = {"median": med, "ci95": [med - 0.05, med + 0.05]}
+        d["priors"]["view_shift.dx_mm"] = {"kind": "normal", "mu": 0.0, "sd": sd, "lower": -3.0, "upper": 3.0}
+        return d
+    v = assess(with_shift(2.86))
+    assert not v.trustworthy and v.checks["beyond_measured_prior"] == ["view_shift.dx_mm"]
+    assert any("view_shift.dx_mm = 2.86 lies 9 sd" in p for p in v.problems)
+    ok = assess(with_shift(0.4))
+    assert ok.trustworthy and ok.checks["beyond_measured_prior"] == []
+    assert not assess(with_shift(0.4, sd=0.05)).trustworthy      # 8 sd of a markers' pose
+
+
 def test_a_misfit_on_uncalibrated_widths_first_asks_for_scan_bias():
     """Apparent widths (the width reference could not be calibrated) fitted without
     scan_bias: the edge offset is in every residual, so the advice names `MODEL+scan_bias`

@@ -125,7 +125,8 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     cal = {k: v for k, v in measurement.prior_overrides(states, problem.param_names).items() if k not in user}
     if cal:
         problem = make_problem(model_spec, data, noise, {**cal, **user}, extra)
-    meas_notes = measurement.notes(states, any(n.startswith("scan_bias.") for n in problem.param_names))
+    meas_notes = measurement.notes(states, any(n.startswith("scan_bias.") for n in problem.param_names),
+                                   any(n.startswith("view_shift.") for n in problem.param_names))
     for n in meas_notes:
         print(f"calib fit: {n}", file=sys.stderr)
     m = fit_map(problem, seed=seed, global_search=True)
@@ -205,7 +206,8 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     The chain starts from ``pa``, or from ``pa+scan_bias`` when `calib measure` said the
     widths are apparent widths (fit/measurement.py: an unknown offset of tens of um passes
     for back-pressure or flow otherwise), with the same scan_bias prior `calib fit` uses,
-    and with ``+view_light`` when the widths carry the flank's angle to the light over its bands;
+    with ``+view_light`` when the widths carry the flank's angle to the light over its bands,
+    and with ``+view_shift`` when the pose places the stations along their tracks loosely;
     ``priors``: the user's priors file, applied to every model that has the parameter."""
     from fit import measurement
     from fit.auto import auto_model
@@ -226,7 +228,8 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     if not missing:
         scan.missing_idx = scan.missing_idx[:0]
     base, pri = measurement.auto_start(scan.name, measurement.load_calibration(widths),
-                                       measurement.light_varies(scan.table.light_angle_deg[scan.table.valid]))
+                                       measurement.light_varies(scan.table.light_angle_deg[scan.table.valid]),
+                                       measurement.load_along_sd(widths))
     user = load_priors_file(priors) if priors else {}
     # the search applies a prior to the models that have it; a name no effect has is a typo
     known = {f"{c.name}.{p.name}" for c in [*REGISTRY.values(), *extra] for p in c.params}
