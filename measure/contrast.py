@@ -45,6 +45,7 @@ picture (2) would only cost sharpness: it is applied to subsampled JPEGs only.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -263,9 +264,11 @@ def _clear_of_beads(manifest: Manifest, pts, clearance_mm: float = 0.3) -> np.nd
     if beads is None:
         return np.ones(len(pts), bool)
     P, hw = beads[0], beads[3]
-    tree = cKDTree(P)
+    nbs = cKDTree(P).query_ball_point(pts, float(hw.max()) + clearance_mm, return_sorted=False)
+    cnt = np.fromiter((len(nb) for nb in nbs), int, len(pts))
+    i = np.repeat(np.arange(len(pts)), cnt)
+    nb = np.fromiter(itertools.chain.from_iterable(nbs), int, int(cnt.sum()))
+    inside = np.hypot(*(P[nb] - pts[i]).T) < hw[nb] + clearance_mm
     ok = np.ones(len(pts), bool)
-    for i, nb in enumerate(tree.query_ball_point(pts, float(hw.max()) + clearance_mm)):
-        if nb and np.any(np.hypot(*(P[nb] - pts[i]).T) < hw[nb] + clearance_mm):
-            ok[i] = False
+    ok[i[inside]] = False
     return ok

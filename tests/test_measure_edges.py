@@ -106,3 +106,38 @@ def test_compiled_normal_equations_match_finite_differences(fixed_s, side):
     np.testing.assert_allclose(JTJ, J.transpose(0, 2, 1) @ J, rtol=1e-5, atol=1e-6 * np.abs(JTJ).max())
     np.testing.assert_allclose(JTr, (J.transpose(0, 2, 1) @ r[..., None])[..., 0], rtol=1e-5,
                                atol=1e-6 * np.abs(JTr).max())
+
+
+def test_a_parameter_held_at_its_bound_gives_the_bounded_least_squares_optimum():
+    """A streak deeper inside its edge than the flank allows (0.02 mm for a bound of 0.04
+    at bead height 0.2 mm): the depth rests on its bound and the rest is fitted around it.
+    Known answer: scipy's bounded least squares (trust-region reflective) on each profile,
+    reached within 12 LM steps (clipping the full step instead crept a micron a step)."""
+    from scipy.optimize import least_squares
+
+    from measure.edges import STREAK_FLANK, fit_streak
+
+    rng = np.random.default_rng(5)
+    n, s, h = 12, 0.05, 0.2
+    w = rng.uniform(0.4, 0.9, n)
+    t = np.linspace(-1, 1, 150)[None] * (w / 2 + 0.5)[:, None]
+    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), rng.normal(0, 0.02, n), w, np.full(n, s)])
+    cg = p[:, 3] + (w / 2 - 0.02)
+    y = edge_pair(t, p) + 0.3 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.01, t.shape)
+    plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
+    fit = fit_streak(t, y, plain.params, 1.0, height_mm=h, n_iter=12)
+    lo_d, hi_d = STREAK_FLANK[0] * h / 2, STREAK_FLANK[1] * h / 2
+    np.testing.assert_allclose(fit.params[:, 7], lo_d)
+    for i in range(n):
+        def resid(q, i=i):
+            b0, b1, A, c, wi, G, d = q
+            cgi = c + wi / 2 - d
+            return (edge_pair(t[i:i + 1], np.array([[b0, b1, A, c, wi, s]]))[0]
+                    + G * np.exp(-0.5 * ((t[i] - cgi) / s) ** 2) - y[i])
+        q0 = np.r_[plain.params[i, :5], 0.1, 0.5 * (lo_d + hi_d)]
+        lb = [-np.inf, -np.inf, -np.inf, t[i, 0], 0.0, 0.0, lo_d]
+        ub = [np.inf, np.inf, np.inf, t[i, -1], np.inf, np.inf, hi_d]
+        ref = least_squares(resid, q0, bounds=(lb, ub), method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+        assert fit.params[i, 4] == pytest.approx(ref.x[4], abs=2e-5)       # width, mm
+        assert fit.params[i, 6] == pytest.approx(ref.x[5], rel=1e-3)       # G
+        assert fit.rms[i] ** 2 * (t.shape[1] - 7) == pytest.approx(2 * ref.cost, rel=1e-6)
