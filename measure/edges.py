@@ -97,8 +97,8 @@ def edge_pair(t, p) -> np.ndarray:
 
 
 #: Beyond |z| = 6, erf(z) is +-1 in double precision (erfc(6) = 2e-17) and the Gaussian
-#: 2/sqrt(pi) exp(-z^2) under 3e-16: most of a profile's samples lie that far from both
-#: edges, and the transcendentals were most of the kernel's time.
+#: 2/sqrt(pi) exp(-z^2) under 3e-16: the kernel skips them for the samples that far from
+#: both edges (the fitted widths of a 12 MP photo's profiles move by 0.02 um at most).
 _ERF_CUT = 6.0
 #: The same for the streak's exp(-u^2 / 2): under 2.3e-16 beyond u^2 = 72.
 _GAUSS_CUT2 = 72.0
@@ -170,7 +170,7 @@ def _normal_kernel(t, y, wts, p, rows, fixed_s, side, cost, JTJ, JTr):  # pragma
             r = (y[i, j] - f) * wt
             cst += r * r
             # far from both edges and the streak only b0, b1 and A act (the other columns
-            # are exactly 0): a third of the sums
+            # are exactly 0): 6 of the 28 sums of a streak fit
             nz = k if (g1 != 0.0 or g2 != 0.0 or (side != 0.0 and g != 0.0)) else 3
             for u in range(nz):
                 cu = col[u] * wt
@@ -297,7 +297,8 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
         lo[:, 6] = 0.0
         lo[:, 7], hi[:, 7] = depth_bounds[:, 0], depth_bounds[:, 1]
     lo, hi = lo[:, free], hi[:, free]
-    # Profiles drop out of the iteration once converged: most need 4-6 steps.
+    # Profiles drop out of the iteration once converged: on a 12 MP photo the plain fits
+    # take 7 steps on average, the streak fits 17.
     for _ in range(n_iter):
         if len(act) == 0:
             break

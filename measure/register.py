@@ -45,6 +45,9 @@ PERSPECTIVE = 0.02
 SUSPECT_PX = 1.0
 #: Offset of AprilTag-refined ArUco corners from the pixel-centre convention (px).
 APRILTAG_OFFSET_PX = 0.5
+#: The automatic pose's track refinement adds the labels' strokes on its rungs of this blur
+#: (mm) and coarser (:func:`_refine`).
+COARSE_RUNG_MM = 0.5
 
 
 class FiducialsNotFound(UserError):
@@ -339,15 +342,19 @@ def _corner_fit(H0, size, bed, img, ctr) -> float:
 
 
 # -- layout points and the track-likeness image -------------------------------------------
-def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 2500):
-    """Points (N, 2) mm on the centrelines of all extruding tracks, their commanded widths
-    (N,) mm (capped at 3 mm: third-party restore moves can read as absurd widths) and
-    unit normals (N, 2)."""
+def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 2500, labels: bool = False):
+    """Points (N, 2) mm on the centrelines of all extruding tracks but labels (``labels``:
+    of the labels only), their commanded widths (N,) mm (capped at 3 mm: third-party
+    restore moves can read as absurd widths) and unit normals (N, 2)."""
     pts, wid, nrm = [], [], []
-    total = sum(tr.length_mm for tr in manifest.tracks if tr.kind != "label")
+
+    def wanted(tr):
+        return tr.length_mm > 0 and (tr.kind == "label") == labels
+
+    total = sum(tr.length_mm for tr in manifest.tracks if wanted(tr))
     step = max(spacing_mm, total / max_points) if total > 0 else spacing_mm
     for tr in manifest.tracks:
-        if tr.length_mm <= 0 or tr.kind == "label":
+        if not wanted(tr):
             continue
         s = np.arange(0.0, tr.length_mm + 1e-9, step)
         w = tr.interp("width_mm", s)
@@ -358,6 +365,8 @@ def layout_points(manifest, spacing_mm: float = 0.5, max_points: int = 2500):
             wid.append(np.minimum(w[keep], 3.0))
             nrm.append(np.column_stack([-tan[:, 1], tan[:, 0]]))
     if not pts:
+        if labels:
+            return np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2))
         raise UserError("the manifest has no extruding tracks to register against; "
                         "is it the manifest of this print?")
     return np.concatenate(pts), np.concatenate(wid), np.concatenate(nrm)
@@ -556,7 +565,8 @@ def register(image, manifest, points=None, *, refine: bool = True,
         if method in ("points", "auto"):
             # A hint start can be a line pitch off, which makes the polarity test
             # unreliable: refine with both and keep the better-aligned result.
-            tries = [(_refine(gray, mp, x, lay_pts, lay_w, pol, scale, corners, hints, method), pol)
+            coarse = _label_anchors(manifest) if method == "auto" else None
+            tries = [(_refine(gray, mp, x, lay_pts, lay_w, pol, scale, corners, hints, method, coarse), pol)
                      for pol in (1.0, -1.0)]
             (x, track_score, x_cov), polarity = max(tries, key=lambda tr: tr[0][1])
         else:
@@ -603,8 +613,31 @@ def register(image, manifest, points=None, *, refine: bool = True,
     return reg
 
 
-def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method):
-    """Track-layout refinement (module docstring, step 2).
+def _label_anchors(manifest):
+    """Layout points (mm) on the labels' strokes when the test tracks all run one way
+    (measure.placement.heading_resultant >= PARALLEL_RESULTANT), else None.
+
+    An automatic start knows the pose to ~1 mm, and along parallel lines nothing in them
+    says where it is: the labels do (our retract pattern printed without markers, flatbed
+    render: 0.54 mm off along its lines, sheared, with the ruler's periodic ticks alone;
+    0.036 mm with the labels on the coarse rungs, 0.018 mm with them on every rung). Only
+    then, and only on the coarse rungs: small text prints worse than lines, and on the
+    spiral, which its tracks hold every way, the labels moved the start 33 -> 67 um off
+    and the final pose 0.6 -> 5.3 um (on every rung), 0.6 -> 1.4 um (coarse rungs)."""
+    from measure.placement import PARALLEL_RESULTANT, heading_resultant
+    from patterns.manifest import sample_points
+
+    lab = layout_points(manifest, labels=True)[0]
+    smp = sample_points(manifest, ds_mm=1.0)
+    if len(lab) == 0 or len(smp) == 0:
+        return None
+    one_way = heading_resultant(smp.nx, smp.ny, np.ones(len(smp), bool)) >= PARALLEL_RESULTANT
+    return lab if one_way else None
+
+
+def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method, coarse_pts=None):
+    """Track-layout refinement (module docstring, step 2). ``coarse_pts`` (mm): more layout
+    points, used on the rungs of COARSE_RUNG_MM and coarser only.
 
     Returns (parameter vector, score, covariance): score = mean saturated track-likeness
     along the layout at the finest scale (higher = better aligned); covariance (JᵀJ)^-1
@@ -648,13 +681,14 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
     for sig_mm in ladder_mm:
         sig_px = max(0.7, sig_mm * scale)
         D = _TrackImage(gray, polarity, sig_px, bg_sigma_px=max(3 * sig_px, 2.5 * w_med * scale))
+        pts = lay_pts if coarse_pts is None or sig_mm < COARSE_RUNG_MM else np.concatenate([lay_pts, coarse_pts])
         # The track term carries the weight of ~400 unit residuals however many layout
         # points there are: enough to set what the corners leave open (k1, k2, and the
         # whole mapping for point hints) without overruling well-measured corners.
-        wt = 20.0 / np.sqrt(len(lay_pts))
+        wt = 20.0 / np.sqrt(len(pts))
 
         def resid(xx):
-            uv = mp.project(xx, lay_pts)
+            uv = mp.project(xx, pts)
             # Saturating reward: a track centre scores ~1-2 sd of local contrast; capping it
             # keeps a few very contrasted spots (glare, markers) from pulling the layout, and
             # gaps or missing beads cost at most a bounded amount (robust like soft-L1).

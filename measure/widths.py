@@ -566,8 +566,8 @@ def _with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True
 
 def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None):
     """For the stations ``idx``: whether a streak passes the F test, the better side's fit,
-    and that side as a bed direction (side x normal). ``light`` (a bed direction): try only
-    the side that faces it; None: both."""
+    and that side as a bed direction (side x normal). ``light`` (a bed direction): try the
+    side that faces it, and the other only where that one passes; None: both everywhere."""
     n = len(idx)
     m_eff = wts[idx].sum(axis=1)
     k0 = 5 if fixed_s else 6
@@ -846,8 +846,8 @@ def _clearance(manifest: Manifest, smp: Samples, w_ref):
     tree = cKDTree(pts)
     xy = np.column_stack([smp.x_mm, smp.y_mm])
     reach = w_ref / 2 + float(hw.max()) + max(0.6, float(np.max(w_ref, initial=0.4)))
-    # every (station, neighbour) pair as one flat array: a Python loop over the stations
-    # was 2.4 s of a 12 MP photo's measurement
+    # every (station, neighbour) pair as one flat array, not a Python loop over the
+    # stations (0.8 -> 0.7 s a call on a 12 MP photo's 11,000 stations; the same gaps)
     nbs = tree.query_ball_point(xy, reach, return_sorted=False)
     cnt = np.fromiter((len(nb) for nb in nbs), int, n)
     i = np.repeat(np.arange(n), cnt)
