@@ -45,9 +45,6 @@ PERSPECTIVE = 0.02
 SUSPECT_PX = 1.0
 #: Offset of AprilTag-refined ArUco corners from the pixel-centre convention (px).
 APRILTAG_OFFSET_PX = 0.5
-#: The automatic pose's track refinement adds the labels' strokes on its rungs of this blur
-#: (mm) and coarser (:func:`_refine`).
-COARSE_RUNG_MM = 0.5
 
 
 class FiducialsNotFound(UserError):
@@ -565,8 +562,8 @@ def register(image, manifest, points=None, *, refine: bool = True,
         if method in ("points", "auto"):
             # A hint start can be a line pitch off, which makes the polarity test
             # unreliable: refine with both and keep the better-aligned result.
-            coarse = _label_anchors(manifest) if method == "auto" else None
-            tries = [(_refine(gray, mp, x, lay_pts, lay_w, pol, scale, corners, hints, method, coarse), pol)
+            anchors = _label_anchors(manifest) if method == "auto" else None
+            tries = [(_refine(gray, mp, x, lay_pts, lay_w, pol, scale, corners, hints, method, anchors), pol)
                      for pol in (1.0, -1.0)]
             (x, track_score, x_cov), polarity = max(tries, key=lambda tr: tr[0][1])
         else:
@@ -619,11 +616,10 @@ def _label_anchors(manifest):
 
     An automatic start knows the pose to ~1 mm, and along parallel lines nothing in them
     says where it is: the labels do (our retract pattern printed without markers, flatbed
-    render: 0.54 mm off along its lines, sheared, with the ruler's periodic ticks alone;
-    0.036 mm with the labels on the coarse rungs, 0.018 mm with them on every rung). Only
-    then, and only on the coarse rungs: small text prints worse than lines, and on the
-    spiral, which its tracks hold every way, the labels moved the start 33 -> 67 um off
-    and the final pose 0.6 -> 5.3 um (on every rung), 0.6 -> 1.4 um (coarse rungs)."""
+    render: 0.89 mm at the 95th percentile along its lines, sheared, with the ruler's
+    periodic ticks alone; 0.039 mm with the labels; seed 1: 0.25 mm). Only then: small text prints
+    worse than lines, and on the spiral, which its tracks hold every way, the labels moved
+    the track refinement's pose 33 -> 67 um off and the final pose 0.6 -> 5.3 um."""
     from measure.placement import PARALLEL_RESULTANT, heading_resultant
     from patterns.manifest import sample_points
 
@@ -635,9 +631,9 @@ def _label_anchors(manifest):
     return lab if one_way else None
 
 
-def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method, coarse_pts=None):
-    """Track-layout refinement (module docstring, step 2). ``coarse_pts`` (mm): more layout
-    points, used on the rungs of COARSE_RUNG_MM and coarser only.
+def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method, extra_pts=None):
+    """Track-layout refinement (module docstring, step 2). ``extra_pts`` (mm): more layout
+    points (:func:`_label_anchors`).
 
     Returns (parameter vector, score, covariance): score = mean saturated track-likeness
     along the layout at the finest scale (higher = better aligned); covariance (JᵀJ)^-1
@@ -678,10 +674,10 @@ def _refine(gray, mp, x, lay_pts, lay_w, polarity, scale, corners, hints, method
             return np.concatenate([corner_res(xx)] + prior(xx))
         x[free] = optimize.least_squares(corner_only, x[free], method="lm", x_scale="jac", diff_step=1e-6,
                                           max_nfev=200).x
+    pts = lay_pts if extra_pts is None else np.concatenate([lay_pts, extra_pts])
     for sig_mm in ladder_mm:
         sig_px = max(0.7, sig_mm * scale)
         D = _TrackImage(gray, polarity, sig_px, bg_sigma_px=max(3 * sig_px, 2.5 * w_med * scale))
-        pts = lay_pts if coarse_pts is None or sig_mm < COARSE_RUNG_MM else np.concatenate([lay_pts, coarse_pts])
         # The track term carries the weight of ~400 unit residuals however many layout
         # points there are: enough to set what the corners leave open (k1, k2, and the
         # whole mapping for point hints) without overruling well-measured corners.
