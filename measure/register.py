@@ -617,9 +617,10 @@ def _label_anchors(manifest):
     An automatic start knows the pose to ~1 mm, and along parallel lines nothing in them
     says where it is: the labels do (our retract pattern printed without markers, flatbed
     render: 0.89 mm at the 95th percentile along its lines, sheared, with the ruler's
-    periodic ticks alone; 0.039 mm with the labels; seed 1: 0.25 mm). Only then: small text prints
-    worse than lines, and on the spiral, which its tracks hold every way, the labels moved
-    the track refinement's pose 33 -> 67 um off and the final pose 0.6 -> 5.3 um."""
+    periodic ticks alone; 0.039 mm with the labels; seed 1: 0.25 mm). Only then: small
+    text prints worse than lines, and on the spiral, which its tracks hold every way, the
+    labels moved the track refinement's pose 33 -> 67 um off and the final pose 0.6 -> 5.3
+    um."""
     from measure.placement import PARALLEL_RESULTANT, heading_resultant
     from patterns.manifest import sample_points
 
