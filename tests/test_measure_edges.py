@@ -141,3 +141,32 @@ def test_a_parameter_held_at_its_bound_gives_the_bounded_least_squares_optimum()
         assert fit.params[i, 4] == pytest.approx(ref.x[4], abs=2e-5)       # width, mm
         assert fit.params[i, 6] == pytest.approx(ref.x[5], rel=1e-3)       # G
         assert fit.rms[i] ** 2 * (t.shape[1] - 7) == pytest.approx(2 * ref.cost, rel=1e-6)
+
+
+@pytest.mark.parametrize("share_facing, expect", [(1.0, "all"), (0.7, "none")])
+def test_streaks_are_believed_only_when_their_sides_agree_on_one_light(share_facing, expect):
+    """400 stations, every profile with a strong streak; ``share_facing`` of them on the
+    flank that faces +x, the rest on the other. All one way: one light, every streak fitted
+    (the screen is sure of it, and the rest try that side first). 70/30: coherence 0.4, no
+    single light, no streak believed; trying the screen's side first had let every station
+    agree with it (measure/widths.py STREAK_SURE_COHERENCE: a light plate read 22 -> 40 um)."""
+    from measure.widths import _with_glare_streaks
+
+    rng = np.random.default_rng(7)
+    n, s = 400, 0.04
+    w = rng.uniform(0.45, 0.9, n)
+    t = np.linspace(-1, 1, 120)[None] * (w / 2 + 0.5)[:, None]
+    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), np.zeros(n), w, np.full(n, s)])
+    side = np.where(rng.uniform(size=n) < share_facing, 1.0, -1.0)
+    rng.shuffle(side)
+    cg = side * (w / 2 - 0.06)
+    y = edge_pair(t, p) + 0.2 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.005, t.shape)
+    plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
+    normals = np.tile([1.0, 0.0], (n, 1))          # side +1 lies towards +x
+    fit, streak = _with_glare_streaks(t, y, plain, np.ones_like(y), np.full(n, 0.2), normals)
+    if expect == "all":
+        assert streak.mean() > 0.95
+        assert np.sqrt(np.mean((fit.width - w)[streak] ** 2)) < 0.002      # mm
+    else:
+        assert not streak.any()
+        np.testing.assert_array_equal(fit.params, plain.params)
