@@ -326,14 +326,14 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
         cost_t, JTJ_t, JTr_t = _normal_equations(t, y, wts, trial_p, act, fixed_s, side)
         better = cost_t < cost[act]
         ib = act[better]
-        small = (np.abs(trial[:, free] - pf) <= 1e-6 * (np.abs(pa[:, free]) + 1e-3 * span[act, None])).all(axis=1)
+        step_f = trial[:, free] - pf
+        small = (np.abs(step_f) <= 1e-6 * (np.abs(pf) + 1e-3 * span[act, None])).all(axis=1)
         rel_gain = (cost[act] - cost_t) / np.maximum(cost[act], 1e-300)
         # Bates & Watts' relative offset (Technometrics 23, 179, 1981): the step, as the
         # change of the fitted profile, against the residual sd; below OFFSET_TOL every
         # parameter is within OFFSET_TOL of its own sd from the optimum. On a photo's
         # profiles (misfit, not noise, dominates the residual) Gauss-Newton converges only
         # linearly, and the parameters' own relative 1e-6 took 30 steps and more.
-        step_f = trial[:, free] - pf
         offset2 = np.einsum("ni,nij,nj->n", step_f, A_, step_f)
         near = (lam[act] <= 0.1) & (offset2 <= OFFSET_TOL ** 2 * cost[act] / np.maximum(m_eff[act] - npar, 1))
         p[ib], cost[ib], JTJ[ib], JTr[ib] = trial[better], cost_t[better], JTJ_t[better], JTr_t[better]
