@@ -560,3 +560,28 @@ def test_a_phone_at_an_angle_is_a_photo_and_a_scanner_is_not():
     man = scene_manifest()
     assert not _is_photo(flatbed(man, dpi=600, rotation_deg=20.0), man)
     assert _is_photo(phone(man), man)
+
+
+def test_settled_widths_two_width_classes_searched_apart():
+    """Eq. (2) with two width classes settling with their own T (1.0 s and 3.0 s): the
+    joint fit searches each class's T on its own block of the design (block-diagonal,
+    every section in one class) and must land where fitting each class alone lands, with
+    both time constants recovered."""
+    from measure.calibrate import settled_widths
+
+    rng = np.random.default_rng(7)
+    t = np.tile(np.linspace(0.5, 9.0, 150), 4)
+    sec = np.repeat([0, 1, 2, 3], 150)
+    cls = np.where(sec < 2, 8, 20)                          # 0.4 mm and 1.0 mm classes
+    T = np.where(cls == 8, 1.0, 3.0)
+    lim = np.array([0.40, 0.41, 1.00, 0.99])[sec]
+    a = lim + 0.06 * np.exp(-t / T) + rng.normal(0, 0.003, len(t))
+    joint = settled_widths(t, a, sec, width_class=cls)
+    for c, Tc in ((8, 1.0), (20, 3.0)):
+        on = cls == c
+        alone = settled_widths(t[on], a[on], sec[on])
+        for k, fit in alone.items():
+            assert joint[k]["limit_mm"] == pytest.approx(fit["limit_mm"], abs=1e-9)
+            assert joint[k]["T_s"] == pytest.approx(fit["T_s"])
+            assert 0.7 * Tc < joint[k]["T_s"] < 1.4 * Tc
+            assert abs(joint[k]["limit_mm"] - lim[sec == k][0]) <= max(3 * joint[k]["sd_mm"], 0.002)
