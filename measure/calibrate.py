@@ -540,7 +540,8 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
     trend, which the alternating passes reverse, for settling (offset -105 um for -63).
     The x term is kept only when it lowers the misfit by more than its BIC penalty + 10
     (stations STATIONS_PER_INDEPENDENT to an independent one), and so is the settling term
-    (c_k and T_c): a reference that settled before FIT_FROM_S (a direct drive) has none,
+    (c_k and T_c; when both it and the x term are kept, half the difference of the limits
+    with and without it joins their sd): a reference that settled before FIT_FROM_S (a direct drive) has none,
     and fitted to the bead's texture it moved the 0.4 mm sections' limits 3 um off their
     medians, which the gain levers into the offset x 5/3 (600 dpi render, every phenomenon:
     offset -42 um for the test tracks' -49). Without it ``T_s`` is 0. The sd of a_k: the linear
@@ -655,6 +656,12 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
     cov = np.linalg.pinv(X.T @ X) * s2
     lims = np.array([row[1] for row in table if (row[0] - sse) / s2 <= 2.3])
     spread = 0.5 * np.ptp(lims, axis=0) if len(lims) else np.zeros(len(ks))
+    if Ts is not None and with_x:
+        # settling and the picture's x trend both kept: within a pass x runs with t, and
+        # the two trade (a phone render at 35 deg, despeckled: the 0.4 mm limits 324 um
+        # with both, 345 with the x trend alone, where the test tracks needed 347), so half
+        # their difference is doubt about the limit, not a detail of it
+        spread = np.hypot(spread, 0.5 * np.abs(coef[:len(ks)] - coef1[:len(ks)]))
     T_of = dict(zip(classes, Ts)) if Ts is not None else {}
     out = {}
     for j, k in enumerate(ks):

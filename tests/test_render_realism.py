@@ -585,3 +585,25 @@ def test_settled_widths_two_width_classes_searched_apart():
             assert joint[k]["T_s"] == pytest.approx(fit["T_s"])
             assert 0.7 * Tc < joint[k]["T_s"] < 1.4 * Tc
             assert abs(joint[k]["limit_mm"] - lim[sec == k][0]) <= max(3 * joint[k]["sd_mm"], 0.002)
+
+
+def test_settling_and_the_picture_trend_kept_together_widen_the_limit():
+    """Eq. (2) with both the settling term and the x term kept (passes run both ways along
+    x, the picture reads 55 um narrower at one end, and the sections settle): within a pass
+    x runs with t, so the two trade. Each limit's sd holds at least half the distance to the
+    limit of the x trend alone (least squares here), and the truth (0.3725 mm at the mean x)."""
+    from measure.calibrate import settled_widths
+
+    rng = np.random.default_rng(3)
+    tt = np.tile(np.linspace(1.0, 6.0, 200), 2)
+    sec = np.repeat([0, 1], 200)
+    x = np.where(sec == 0, 10 * tt, 60 - 10 * tt)
+    a = 0.40 - 0.055 * x / 60 + 0.03 * np.exp(-tt / 1.5) * np.where(sec == 0, 1.0, 0.3) + rng.normal(0, 0.002, len(tt))
+    fits = settled_widths(tt, a, sec, x_mm=x)
+    X = np.column_stack([sec == 0, sec == 1, x - x.mean()]).astype(float)
+    x_only = np.linalg.lstsq(X, a, rcond=None)[0][:2]
+    assert fits[0]["T_s"] > 0                                  # both terms kept
+    for k in (0, 1):
+        assert fits[k]["sd_mm"] >= 0.5 * abs(fits[k]["limit_mm"] - x_only[k]) - 1e-9
+        assert abs(fits[k]["limit_mm"] - 0.3725) <= 2 * fits[k]["sd_mm"]
+    assert abs(x_only[0] - fits[0]["limit_mm"]) > 0.004         # the two models do differ here
