@@ -578,7 +578,7 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
         spatial = [xc * (cls == c) for c in spatial_cls]
     # every section within one class: the design is block-diagonal by class, so each
     # class's T is searched on its own block (len(grid) x classes solves instead of
-    # len(grid) ** classes: 1,900 -> 90 least squares on a two-width reference, the same fit)
+    # len(grid) ** classes: 1,936 -> 88 least squares on a two-width reference, the same fit)
     separable = len(classes) > 1 and bool(np.all(cls == np.asarray(k_cls)[np.searchsorted(ks, sec)]))
 
     def design(Ts, with_x=True):

@@ -5,6 +5,7 @@ along the track normal *in bed millimetres* (points X + t n, t in mm, mapped thr
 registration, bilinear ``scipy.ndimage.map_coordinates``): the local Jacobian of the
 mapping is thereby applied exactly, and the fitted edge-pair width (measure.edges) is in
 mm directly; each profile averages STRIP_LINES lines over the station's STRIP_MM of track
+(despeckled along the track first: :func:`_despeckle`)
 and stops NEIGHBOUR_CLEAR_SIGMAS blurs short of the nearest other bead's edge. Two passes:
 first with the blur free; then the blur, which is a property of the optics and therefore
 smooth over the image, is fitted as a plane s_px(u, v) over the wide beads (w > 4 s, where
