@@ -5,6 +5,7 @@ along the track normal *in bed millimetres* (points X + t n, t in mm, mapped thr
 registration, bilinear ``scipy.ndimage.map_coordinates``): the local Jacobian of the
 mapping is thereby applied exactly, and the fitted edge-pair width (measure.edges) is in
 mm directly; each profile averages STRIP_LINES lines over the station's STRIP_MM of track
+(despeckled along the track first: :func:`_despeckle`)
 and stops NEIGHBOUR_CLEAR_SIGMAS blurs short of the nearest other bead's edge. Two passes:
 first with the blur free; then the blur, which is a property of the optics and therefore
 smooth over the image, is fitted as a plane s_px(u, v) over the wide beads (w > 4 s, where
@@ -65,12 +66,18 @@ SD_CALIBRATION = 0.85
 #: Edge-model error added in quadrature (px), e.g. rounding of the bead shoulder. (0.03
 #: before the profiles averaged STRIP_LINES lines: with the strip the flatbed render's
 #: errors fell to 1.2 um and 92 % of them lay within a 0.03 px floor's sd; 0.015 puts the
-#: flat, phone and translucent renders at 67-68 %.)
-SD_FLOOR_PX = 0.015
+#: flat, phone and translucent renders at 67-68 %; 0.010 since the strips are despeckled
+#: (:func:`_despeckle`): the flat render's errors fell 1.2 -> 0.75 um RMS and 84 % lay
+#: within 0.015 px; now 72 %, the phone renders 66 and 65 % either way.)
+SD_FLOOR_PX = 0.010
 #: calibrated_sd: second differences over this arc length (mm), in this many bins of the
 #: formal variance, with the robust sd from this quantile of |d| (0.68: a little more of the
-#: tails than the median, still blind to the few steps and blobs of a track)
-SD_LAG_MM = 1.0
+#: tails than the median, still blind to the few steps and blobs of a track). The lag was
+#: 1 mm until the strips were despeckled: the despeckled station noise fell 3x on a
+#: flatbed render saved as JPEG 15, what its blocks share over a millimetre much less, and
+#: 1 mm left 53 % of its errors within their sd (62 % before); 2 mm gives 60 %, the
+#: bench_realism scenes within 0.02 of 1 mm's coverage.
+SD_LAG_MM = 2.0
 SD_BINS = 5
 SD_QUANTILE = 0.68
 #: Profile step (px) aimed for; the fit is insensitive below ~0.5 px.
@@ -144,6 +151,11 @@ STREAK_COHERENCE = 0.6
 #: On scans with >= this x STREAK_MIN_STATIONS fitted stations, one in this many is tried
 #: for a streak first (:func:`_with_glare_streaks`).
 STREAK_SCREEN_EVERY = 8
+#: ... and the light those show is believed only beyond this many times the coherence n
+#: passes have with their sides at random (1 / sqrt(n)): a streak-free flatbed render,
+#: despeckled, had 2 of 181 pass on one side (coherence 1), then 5 at 0.6, and the full
+#: test ran for nothing (50 of 1446 passed, coherence 0.08).
+STREAK_SCREEN_CHANCE = 2.0
 #: ... and when those agree on the light this well, the others are tried on the side that
 #: faces it first (the screen's coherence was within 0.11 of the full test's on six
 #: renders' scans, 0.32-0.87).
@@ -152,6 +164,9 @@ STREAK_SURE_COHERENCE = 0.7
 #: track: the stations' spacing, so that every pixel row along a track is used once.
 STRIP_LINES = 5
 STRIP_MM = 0.25
+#: :func:`_despeckle`'s element along the track (mm): longer than the plate's grain as a
+#: phone blurs it (specks 0.1-0.3 mm, 0.4-0.5 mm seen through 0.16 mm of blur).
+SPECK_MM = 0.45
 #: A profile's samples stop this many blur sigmas short of the nearest other bead's edge
 #: (its erfc tail there is 0.7 %) ...
 NEIGHBOUR_CLEAR_SIGMAS = 3.0
@@ -453,15 +468,15 @@ def _strip_profiles(gray, registration, t, smp: Samples, manifest, W, H, lines: 
     """Profiles (N, M) at offsets ``t`` (N, M) (mm) along the normals of the stations ``smp``,
     each the mean of ``lines`` profiles spread evenly over STRIP_MM of the track around
     the station, each across the track where it lies (``manifest`` given: the track's own
-    polyline; else straight along the station's tangent). One line per station uses one
-    pixel row in six at 600 dpi; five cut the widths' scatter by 10-15 % (light plate,
-    PNG: 13.5 -> 8.6 um RMS; flatbed with every phenomenon 10.5 -> 9.2 um)."""
+    polyline; else straight along the station's tangent), after :func:`_despeckle`. One
+    line per station uses one pixel row in six at 600 dpi; five cut the widths' scatter by
+    10-15 % (light plate, PNG: 13.5 -> 8.6 um RMS; flatbed with every phenomenon 10.5 -> 9.2 um)."""
     n, m = t.shape
     nrm = np.column_stack([smp.nx, smp.ny])
     xy = np.column_stack([smp.x_mm, smp.y_mm])
     tracks = {tr.id: tr for tr in manifest.tracks} if manifest is not None else {}
-    acc = np.zeros((n, m), np.float64)
-    for f in (np.arange(lines) + 0.5) / lines - 0.5:
+    stack = np.empty((lines, n, m), np.float32)
+    for j, f in enumerate((np.arange(lines) + 0.5) / lines - 0.5):
         pos, nf = xy + f * STRIP_MM * np.column_stack([nrm[:, 1], -nrm[:, 0]]), nrm
         if f != 0.0 and tracks:
             # a straight line along the tangent leaves a curved bead: on a spiral's inner
@@ -477,9 +492,62 @@ def _strip_profiles(gray, registration, t, smp: Samples, manifest, W, H, lines: 
                 p_, tan = tr.at(np.clip(smp.s_mm[i] + f * STRIP_MM, 0.0, tr.length_mm))
                 pos[i], nf[i] = p_, np.column_stack([-tan[:, 1], tan[:, 0]])
         uv = registration.project((pos[:, None, :] + t[..., None] * nf[:, None, :]).reshape(-1, 2))
-        acc += ndimage.map_coordinates(gray, [np.clip(uv[:, 1], 0, H - 1), np.clip(uv[:, 0], 0, W - 1)], order=1,
-                                       mode="nearest").reshape(n, m)
-    return acc / lines
+        stack[j] = ndimage.map_coordinates(gray, [np.clip(uv[:, 1], 0, H - 1), np.clip(uv[:, 0], 0, W - 1)],
+                                           order=1, mode="nearest").reshape(n, m)
+    return _despeckle(stack, smp, t).mean(axis=0, dtype=np.float64)
+
+
+def _despeckle(stack, smp: Samples, t, speck_mm: float | None = None):
+    """The lines ``stack`` (L, N, M) of the stations' strips, each offset t's sequence along
+    the track replaced by the mean of its open-close and its close-open (flat element
+    ``speck_mm`` long; Serra's alternating filters, "Image Analysis and Mathematical
+    Morphology", 1982).
+
+    Stations every STRIP_MM along a track tile it with their L lines each (one every
+    STRIP_MM / L mm), so a run of stations with the same offsets ``t`` is one sequence along
+    the track per offset. An opening removes what is brighter than both sides along the
+    track over less than ``speck_mm``, a closing what is darker (a bright speck of the plate
+    beside a bright bead, a dark pit on it; either order of bead and plate): the grain that
+    sparkles under a lamp, which the mean of the lines only dilutes. A sequence that only
+    rises or falls along the track (a bead widening or narrowing, an edge that moves) is
+    left as it is: both keep monotone sequences. Open-close alone leans to the lower
+    envelope of fine noise (an edge's aliasing ripple: flatbed render at 400 dpi, -1.7 um
+    width bias), close-open to the upper; their mean to neither (+0.04 um). What they
+    flatten is the bead's own bumps and necks shorter than ``speck_mm``, below the scales
+    the fit reads. Runs shorter than two elements are left alone."""
+    lines, n, m = stack.shape
+    k = int(round((SPECK_MM if speck_mm is None else speck_mm) / (STRIP_MM / lines)))
+    if k < 2 or n < 2:
+        return stack
+    order = np.lexsort((smp.s_mm, smp.track))
+    tr, ss, to = np.asarray(smp.track)[order], np.asarray(smp.s_mm)[order], t[order]
+    brk = np.ones(n, bool)
+    brk[1:] = ((tr[1:] != tr[:-1]) | (np.abs(np.diff(ss) - STRIP_MM) > 1e-6)
+               | np.any(np.abs(to[1:] - to[:-1]) > 1e-9, axis=1))
+    starts = np.flatnonzero(brk)
+    out = stack.copy()
+    for a, b in zip(starts, np.append(starts[1:], n)):
+        if (b - a) * lines < 2 * k:
+            continue
+        idx = order[a:b]
+        seq = stack[:, idx, :].transpose(1, 0, 2).reshape((b - a) * lines, m)
+        # each end continued by its own value: a run that starts on its maximum (an end blob)
+        # or minimum stays monotone there; mirrored, the end became a peak the opening cut (the
+        # demo's start blob read 1.05 for 1.19 mm, and the blob's reach shrank by a station)
+        seq = np.pad(seq, ((k, k), (0, 0)), mode="edge")
+        seq = 0.5 * (_close(_open(seq, k), k) + _open(_close(seq, k), k))[k:-k]
+        out[:, idx, :] = seq.reshape(b - a, lines, m).transpose(1, 0, 2)
+    return out
+
+
+def _open(a, k):
+    """Grey opening of ``a`` along axis 0 with a flat element of ``k`` samples."""
+    return ndimage.maximum_filter1d(ndimage.minimum_filter1d(a, k, axis=0), k, axis=0)
+
+
+def _close(a, k):
+    """Grey closing of ``a`` along axis 0 with a flat element of ``k`` samples."""
+    return ndimage.minimum_filter1d(ndimage.maximum_filter1d(a, k, axis=0), k, axis=0)
 
 
 def _clear_of_neighbour(t, w_ref, gap, blur_mm):
@@ -542,7 +610,8 @@ def _with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True
         sub = idx[::k]
         use, _, toward = _streak_test(t, y, fit, wts, height_mm, normals, sub, fixed_s)
         light = toward[use].mean(axis=0) if use.any() else np.zeros(2)
-        if use.sum() < 0.5 * STREAK_MIN_STATIONS / k or np.hypot(*light) < 0.5 * STREAK_COHERENCE:
+        if (use.sum() < 0.5 * STREAK_MIN_STATIONS / k
+                or np.hypot(*light) < max(0.5 * STREAK_COHERENCE, STREAK_SCREEN_CHANCE / np.sqrt(use.sum()))):
             return fit, streak
         if np.hypot(*light) < STREAK_SURE_COHERENCE:
             light = None
@@ -735,7 +804,8 @@ def calibrated_sd(track, s_mm, w, sd, valid, lag_mm: float = SD_LAG_MM, bins: in
     where the errors grow with the formal sd, a floor where they do not. Never below the
     edge fit's own sd (k, f = 1, 0 when the scatter is smaller or there are < 30 stations a bin).
 
-    Why a floor and a lag of L = ``SD_LAG_MM`` (1 mm), not one factor on adjacent stations:
+    Why a floor and a lag of L = ``SD_LAG_MM`` (1 mm then; 2 mm since the strips are
+    despeckled, see SD_LAG_MM), not one factor on adjacent stations:
     on 600 dpi renders with every phenomenon (bench_realism) the errors are 3.4-7 um
     whatever the formal sd (2-14 um) and correlated between neighbours (0.29-0.5 at
     0.25 mm): one factor from adjacent stations (1.7) left the smallest-sd fifth's errors at

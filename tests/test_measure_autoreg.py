@@ -128,19 +128,21 @@ def test_a_picture_of_something_else_is_refused_in_one_line_with_the_overlay(tmp
 
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason="../shared/realdata not present")
-@pytest.mark.parametrize("photo, gcode, max_residual_mm, parallel", [
+@pytest.mark.parametrize("photo, gcode, max_residual_mm, along_sd_mm", [
     # measured 0.015 mm, 78 % valid, ~23 s (the whole measurement); a spiral
-    ("SpStartStopTest2.jpg", "SpStartStopTest2_Te210Tp50Fe10Fc10Kf04Kb10Re15R.g", 0.05, False),
-    # measured 0.060 mm, 57 % valid, ~56 s: the printer put this print's tracks -0.13..+0.24 mm
+    ("SpStartStopTest2.jpg", "SpStartStopTest2_Te210Tp50Fe10Fc10Kf04Kb10Re15R.g", 0.05, (0.0, 0.05)),
+    # measured 0.061 mm, 65 % valid, ~40 s: the printer put this print's tracks -0.13..+0.24 mm
     # off their lines (5-95 %; the same G-code line's 1 mm/s and 20-100 mm/s sections sit
     # 0.05-0.16 mm apart), which no map of the bed onto the picture can follow; the beads
-    # lie within 0.021 mm of their own track's line (measure/placement.py); issue #10 asks 0.05.
-    # Straight parallel lines: the pose along them is held only by the few tracks across
-    # them; its along-track sd says so (0.46 mm median; 1 LSB of noise moved it 0.1-0.5 mm),
-    # where the spiral's says 0.014 mm (its stations moved 2-5 um)
-    ("StartStopTestPLA1.jpg", "StartStopTestPLA1_Kf10_Kb20_Re10_RPv.g", 0.09, True),
+    # lie within 0.018 mm of their own track's line (measure/placement.py); issue #10 asks 0.05.
+    # Straight parallel lines: the pose along them is held only by the tracks across them;
+    # its along-track sd says so (0.076 mm median since the strips are despeckled and 356
+    # stations across the lines are valid, 0.36-0.46 mm with 167; 1 LSB of noise moved the
+    # stations 0.004-0.019 mm along their lines, 0.1-0.5 mm before), where the spiral's says
+    # 0.014 mm (its stations moved 2-5 um)
+    ("StartStopTestPLA1.jpg", "StartStopTestPLA1_Kf10_Kb20_Re10_RPv.g", 0.09, (0.05, 0.5)),
 ])
-def test_realdata_photos_register_without_points(photo, gcode, max_residual_mm, parallel, tmp_path):
+def test_realdata_photos_register_without_points(photo, gcode, max_residual_mm, along_sd_mm, tmp_path):
     from measure.pipeline import measure_scan
     from patterns.manifest import Manifest
 
@@ -154,6 +156,7 @@ def test_realdata_photos_register_without_points(photo, gcode, max_residual_mm, 
     # fit's) error: 0.013 and 0.021 mm measured
     assert res.placement.within_track_mm <= 0.05
     assert res.summary["fraction_valid"] > 0.35
-    assert any("all run one way" in w for w in res.summary["warnings"]) == parallel
     along_sd = res.summary["registration"]["along_track_sd_mm"]
-    assert (along_sd >= 0.1) if parallel else (along_sd < 0.05)
+    assert along_sd_mm[0] <= along_sd < along_sd_mm[1]
+    # a user is told when the pose holds the stations along their lines only loosely
+    assert any("along their lines only to" in w for w in res.summary["warnings"]) == (along_sd >= 0.05)
