@@ -178,6 +178,8 @@ def find_marker(gray, camera, marker_id: int, corners_mm, polarity: float = 1.0,
     cells = _read_cells(aligned, bad, q, pad) * np.sign(polarity)
     frame_cells = np.r_[cells[0, :], cells[-1, :], cells[1:-1, 0], cells[1:-1, -1]]    # quiet frame: plastic
     border_cells = np.r_[cells[1, 1:-1], cells[-2, 1:-1], cells[2:-2, 1], cells[2:-2, -2]]  # black border: plate
+    if not (np.isfinite(frame_cells).any() and np.isfinite(border_cells).any()):
+        return None                        # every cell of the frame or the border unread
     lit, dark = np.nanmedian(frame_cells), np.nanmedian(border_cells)
     if not lit > dark:
         return None
