@@ -658,7 +658,7 @@ def settled_widths(since_s, width_mm, section, width_class=None, x_mm=None, grid
     spread = 0.5 * np.ptp(lims, axis=0) if len(lims) else np.zeros(len(ks))
     if Ts is not None and with_x:
         # settling and the picture's x trend both kept: within a pass x runs with t, and
-        # the two trade (a phone render at 35 deg, its strips despeckled as tried in
+        # the two trade (a phone render at 35 deg with despeckled strips,
         # docs/MEASUREMENT.md: the 0.4 mm limits 324 um with both, 345 with the x trend
         # alone, where the test tracks needed 347), so half their difference is doubt
         # about the limit, not a detail of it
