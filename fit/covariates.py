@@ -223,7 +223,8 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
     """Score every covariate by the residual variance a binned-mean curve of it explains.
 
     For covariate c: sort into ``n_bins`` equal-count bins (or one bin per distinct value
-    when there are fewer), R^2 = 1 - sum (r - mean_bin(r))^2 / sum (r - mean(r))^2.
+    when there are fewer; a bin too thin to be evidence merged into a neighbour, :func:`_bins`),
+    R^2 = 1 - sum (r - mean_bin(r))^2 / sum (r - mean(r))^2.
 
     Null: residuals along a track are autocorrelated (samples every 0.25 mm), so an
     i.i.d. permutation null would call any smooth covariate significant. The null instead
