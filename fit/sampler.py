@@ -466,7 +466,10 @@ class GroupedMove(emcee.moves.Move):
             order = np.argsort(idx)
             idx, q, f = idx[order], np.concatenate(qs)[order], np.concatenate(fs)[order]
             nlp, blobs = model.compute_log_prob_fn(q)
-            acc = f + nlp - state.log_prob[idx] > np.log(model.random.rand(len(idx)))
+            # a proposal outside the support (-inf) from a walker still there, or a snooker
+            # factor of a degenerate pair, gives inf - inf: NaN, never accepted, as in emcee
+            with np.errstate(invalid="ignore"):
+                acc = f + nlp - state.log_prob[idx] > np.log(model.random.rand(len(idx)))
             accepted[idx[acc]] = True
             subset = np.zeros(nw_tot, dtype=bool)
             subset[idx] = True

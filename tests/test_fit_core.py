@@ -460,3 +460,32 @@ def test_laplace_sds_survive_a_parameter_at_its_bound():
     sxx = float(np.sum((X - X.mean()) ** 2))
     assert sd["line.b_mm"] == pytest.approx(0.2 / math.sqrt(sxx), rel=0.02)
     assert sd["line.a_mm"] == pytest.approx(0.2 * math.sqrt(1 / len(X) + X.mean() ** 2 / sxx), rel=0.02)
+
+
+def test_grouped_move_frees_a_walker_started_outside_the_support_without_warnings():
+    """A walker at log p = -inf (an initial ball's fallback at a bound) takes the first
+    proposal inside the support (inf > log u), and inf - inf for a proposal outside too is
+    a rejection, not a RuntimeWarning printed to the user."""
+    import warnings
+
+    import emcee
+
+    from fit.sampler import GroupedMove
+
+    def logp(x):
+        x = np.atleast_2d(x)
+        return np.where(np.all(np.abs(x) < 1.0, axis=1), -0.5 * np.sum(x ** 2, axis=1), -np.inf)
+
+    rng = np.random.default_rng(3)
+    p0 = rng.uniform(-0.5, 0.5, (16, 2))
+    p0[0] = [5.0, 5.0]      # outside: log p = -inf
+    s = emcee.EnsembleSampler(16, 2, logp, vectorize=True,
+                              moves=[(GroupedMove(emcee.moves.DEMove(), 2), 0.8),
+                                     (GroupedMove(emcee.moves.DESnookerMove(), 2), 0.2)])
+    s._random = np.random.mtrand.RandomState(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        s.run_mcmc(p0, 200)
+    last = s.get_chain()[-1]
+    assert np.all(np.abs(last) < 1.0)
+    assert np.all(np.isfinite(s.get_log_prob()[-1]))
