@@ -57,6 +57,9 @@ class ScanData:
     y_mm, sd_mm (n_valid,) measured width and its sd at ``order`` (mm)
     gap_mm      (n_valid,) arc length to the previous valid sample of the same track
                 (mm; inf at the first sample of each track)
+    corr_prev   (n_valid,) correlation of the measurement error of each valid sample with
+                the previous valid sample's (the table's ``width_corr_prev`` where that
+                sample is the station just before it on the track, else 0; None: all 0)
     missing_idx (n_missing,) row indices of the stations flagged ``missing`` (no bead seen)
                 that lie on a printed part of a test track, sorted by (track, s_mm); the
                 censored data of the fit (their ``width_sd_mm`` is the scan's detection
@@ -74,6 +77,7 @@ class ScanData:
     ctx: object = None
     source: dict = field(default_factory=dict)
     missing_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    corr_prev: np.ndarray | None = None
 
     @property
     def n_valid(self) -> int:
@@ -188,6 +192,13 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
     gap = np.concatenate([[np.inf], np.diff(s)])
     new = np.concatenate([[True], tr[1:] != tr[:-1]]) | (gap > MAX_GAP_MM) | (gap <= 0)
     gap = np.where(new, np.inf, gap)
+    # the measurement's neighbour correlation holds only between a station and the one
+    # just before it (rows of the table in track, s order): one with an invalid station
+    # between them shares no filtered pixels with it
+    rank = np.empty(len(table), np.int64)
+    rank[np.lexsort((table.s_mm, table.track))] = np.arange(len(table))
+    adjacent = np.concatenate([[False], np.diff(rank[idx]) == 1]) & ~new
+    corr_prev = np.where(adjacent, table.width_corr_prev[idx], 0.0)
     if ctx is None and build_ctx:
         from fit.context import SimContext
         ctx = SimContext.build(manifest, samples)
@@ -200,7 +211,7 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
             c.s_light_deg = np.asarray(table.light_angle_deg, dtype=float)
     return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
                     y_mm=table.width_mm[idx].copy(), sd_mm=sd[idx].copy(),
-                    gap_mm=gap, ctx=ctx, missing_idx=missing_rows(table, samples, ctx))
+                    gap_mm=gap, ctx=ctx, missing_idx=missing_rows(table, samples, ctx), corr_prev=corr_prev)
 
 
 def missing_rows(table: WidthTable, samples, ctx=None) -> np.ndarray:

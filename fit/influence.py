@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fit.likelihood import _kalman, ar1_phi
+from fit.likelihood import _kalman, ar1_phi, is_noise
 
 #: stations whitened per batch when building M (memory: batch x n doubles)
 _BATCH = 512
@@ -61,9 +61,10 @@ class Influence:
 
 
 def whitening_matrix(sc, sigma_extra_mm: float, corr_len_mm: float | None, sigma_short_mm: float = 0.0,
-                     short_corr_mm: float = 0.4, rel_mm=None) -> np.ndarray:
+                     short_corr_mm: float = 0.4, rel_mm=None, link=None, rho_m: float = 0.0) -> np.ndarray:
     """M (n, n) with M @ x = fit.likelihood.whiten(x, ...) for the scan's valid stations
-    (its sd_mm and gap_mm; ``rel_mm`` (n,) the relative wobble's sd at each, mm, or None):
+    (its sd_mm and gap_mm; ``link``, ``rho_m``: its linked measurement errors,
+    JointProblem.meas_parts; ``rel_mm`` (n,) the relative wobble's sd at each, mm, or None):
     the whitening is linear in x, so M is it applied to the unit vectors."""
     n = len(sc.y_mm)
     sd2 = np.asarray(sc.sd_mm, dtype=float) ** 2
@@ -77,7 +78,8 @@ def whitening_matrix(sc, sigma_extra_mm: float, corr_len_mm: float | None, sigma
         v, F = _kalman(eye, sd2, np.array([sigma_extra_mm ** 2]), phi,
                        np.array([sigma_short_mm ** 2]) if short else None,
                        ar1_phi(g, [[short_corr_mm]]) if short else None,
-                       None if rel_mm is None else np.broadcast_to(np.asarray(rel_mm, dtype=float), eye.shape))
+                       None if rel_mm is None else np.broadcast_to(np.asarray(rel_mm, dtype=float), eye.shape),
+                       link, np.array([float(rho_m)]))
         cols.append(v / np.sqrt(F))
     return np.vstack(cols).T
 
@@ -88,9 +90,7 @@ def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
     theta = np.asarray(theta, dtype=float)
     sc = problem.scans[k]
     i_sig, i_cor, i_short = problem.noise_index[k]
-    noise = {i for trip in problem.noise_index for i in trip if i is not None} | {
-        i for i in problem.rel_index if i is not None}
-    free = [i for i in range(problem.ndim) if i not in noise]
+    free = [i for i, name in enumerate(problem.param_names) if not is_noise(name)]
     lo, hi = problem.bounds.T
 
     def pred(th):
@@ -110,7 +110,8 @@ def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
             P[j, j] = max(0.0, -(lp[2] - 2 * lp[1] + lp[0]) / ((up - dn) / 2) ** 2)
     fixed, rel = problem.wobble_parts(theta, k, pred(theta))
     M = whitening_matrix(sc, fixed, None if i_cor is None else float(theta[i_cor]),
-                         0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm, rel)
+                         0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm, rel,
+                         *problem.meas_parts(theta, k))
     Jw = M @ J
     A = np.linalg.solve(Jw.T @ Jw + P, Jw.T @ M)
     return Influence(names=[problem.param_names[i] for i in free], A=A, rows=np.asarray(sc.order), theta=theta)

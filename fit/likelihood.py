@@ -97,6 +97,31 @@ from 0.34 to 0.12 mm: the misfit moved out of the noise into the residuals (READ
 (its variance sigma^2 2 ell / L) but no longer for free. A single long track (the spiral)
 is not bounded by it: the prior's own 50 mm is shorter than a quarter of it.
 
+Neighbouring stations' errors (session 38). ``measure`` despeckles each track's strips
+along the track with an element (0.45 mm) longer than the stations' spacing (0.25 mm), so
+neighbouring stations' widths are read from shared filtered pixels and their errors
+correlate: error / sd at lag 1, 2, 3 stations 0.45, 0.11, 0.02 on `make demo`'s 600 dpi
+scan (0.07 at lag 1 without the despeckling), 0.77, 0.38, 0.16 on the 400 dpi test
+renders. The table links such stations (``width_corr_prev``, fit.data.ScanData.corr_prev);
+where any are linked the measurement term eps_i is not white but a unit AR(1) state seen
+through sd_i,
+
+    eps_i = sd_i c_i,   c_i = rho_m c_(i-1) + sqrt(1 - rho_m^2) w_i   (linked; else c_i = w_i)
+
+with rho_m = ``noise.meas_corr`` fitted per scan (uniform on [0, 0.95], starting at the
+measurement's value): covariance sd_i sd_j rho_m^|i - j| within a linked run, the third
+state of the filter (:func:`_kalman`). AR(1) rather than the one-step moving average the
+filter's finite reach suggests: an MA(1) cannot correlate neighbours by more than 0.5,
+and the 400 dpi renders do. What it changes, measured on the demo's scan
+(pa+backpressure+thermal, MAP): ln L +912 over independent errors (rho_m 0.59; a fixed
+MA(1) of 0.45 gave +957), yet the intervals hardly: Kb's sd 0.00239 against 0.00240,
+because the wobble, whose length is free down to 0.02 mm, had already taken most of the
+correlation (ell 0.70 -> 0.56 mm, sigma_extra 0.41 -> 0.30 um with it). So the demo's Kb
+0.994 [0.990, 0.998] (truth 1) is not this: with the demo's own errors moved along the
+track by 37-503 stations (their correlation kept, their place against the flow steps
+not), the MAP Kb read 0.9972-1.0020 (mean 1.0003, sd 0.0017 against a stated 0.0023);
+in place it reads 0.9940 (docs/MEASUREMENT.md, end of "Despeckled strips").
+
 The first sample of every track (and every new scan) starts from the stationary state
 (phi = 0 across a track start), so the sum is the exact joint log-likelihood, not a
 conditional one. Optionally the standardised innovation v / sqrt(F) is Student-t(nu)
@@ -172,6 +197,7 @@ SIGMA_NAME = "noise.sigma_extra_mm"
 CORR_NAME = "noise.corr_len_mm"
 SHORT_NAME = "noise.sigma_short_mm"
 REL_NAME = "noise.rel_share"
+MEAS_NAME = "noise.meas_corr"
 #: Correlation length (mm) of the short wobble: about a nozzle width, the scale over
 #: which the bead's own surface tension and the nozzle's land correlate its width; at
 #: the measurement's 0.25 mm station spacing neighbours correlate exp(-0.25/0.4) = 0.54.
@@ -214,10 +240,14 @@ class NoiseOptions:
     # the share of the wobble's variance that grows with the width: uniform, 0 (all of it
     # the same at every width) to 1 (all of it in proportion to the width)
     rel_prior: Prior = field(default_factory=lambda: Prior("uniform", 0.0, 1.0))
+    # the measurement errors' correlation between linked neighbours (module docstring,
+    # "Neighbouring stations' errors"); fitted on scans whose table links any
+    meas_corr: bool = True
+    meas_prior: Prior = field(default_factory=lambda: Prior("uniform", 0.0, 0.95))
 
 
 def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None, sigma_short_mm=None,
-                     phi_short=None, rel_mm=None) -> np.ndarray:
+                     phi_short=None, rel_mm=None, link=None, rho_m=None) -> np.ndarray:
     """Pointwise log-likelihood (n_sets, n) of residuals under the noise model above
     (the Kalman filter in numpy; the reference for the compiled kernel).
 
@@ -230,6 +260,9 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None,
     sigma_short_mm  (n_sets, 1) or scalar sd of the short wobble (mm), or None (absent)
     phi_short       (n_sets, n) its correlation to the previous sample (needs ``phi``)
     rel_mm          (n_sets, n) the relative wobble's sd at each sample (mm; h^2 = sigma_extra^2 + rel^2), or None
+    link            (n,) 1 where the sample's measurement error is linked to the previous
+                    sample's (fit.data.ScanData.meas_link), or None (independent errors)
+    rho_m           (n_sets, 1) or scalar: the linked errors' correlation (``noise.meas_corr``)
     """
     r = np.atleast_2d(np.asarray(resid_mm, dtype=float))
     short = sigma_short_mm is not None and phi_short is not None
@@ -239,7 +272,8 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None,
                    np.broadcast_to(np.asarray(sigma_short_mm, dtype=float) ** 2, (r.shape[0], 1))[:, 0]
                    if short else None,
                    np.broadcast_to(phi_short, r.shape) if short else None,
-                   None if rel_mm is None else np.broadcast_to(rel_mm, r.shape))
+                   None if rel_mm is None else np.broadcast_to(rel_mm, r.shape), link,
+                   None if rho_m is None else np.broadcast_to(np.asarray(rho_m, dtype=float), (r.shape[0], 1))[:, 0])
     if student_nu is None:
         return -0.5 * (v * v / F + np.log(F) + LOG2PI)
     nu = float(student_nu)
@@ -247,7 +281,7 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None,
     return c - 0.5 * np.log(F) - 0.5 * (nu + 1) * np.log1p(v * v / (F * nu))
 
 
-def _kalman(r, sd2, s2x, phi, s2y=None, phi2=None, rel_mm=None):
+def _kalman(r, sd2, s2x, phi, s2y=None, phi2=None, rel_mm=None, link=None, rho_m=None):
     """Innovations v and their variances F (n_sets, n) of ``r`` (n_sets, n) under the
     noise model: sd2 (n,) measurement variances, s2x (n_sets,) sigma_extra^2, phi
     (n_sets, n) or None (independent x); s2y (n_sets,) sigma_short^2 and phi2 (n_sets, n)
@@ -255,36 +289,49 @@ def _kalman(r, sd2, s2x, phi, s2y=None, phi2=None, rel_mm=None):
     each station (mm; :meth:`JointProblem.wobble_parts`), or None. The long wobble is a
     unit AR(1) state seen through h_j = sqrt(sigma_extra^2 + rel_j^2) (without rel, h is
     constant and this is the plain filter of the module docstring with its state scaled by
-    sigma_extra). Linear in r: whitening any vector (a Jacobian for a Cramer-Rao bound) is
-    v / sqrt(F) with the same gains."""
+    sigma_extra). link (n,) and rho_m (n_sets,): the measurement error as a unit AR(1)
+    state seen through sd_j, linked to the previous sample's where link_j = 1 with
+    coefficient rho_m (module docstring, "Neighbouring stations' errors"; None: independent).
+    Linear in r: whitening any vector (a Jacobian for a Cramer-Rao bound) is v / sqrt(F)
+    with the same gains."""
     n_sets, n = r.shape
     v = np.empty_like(r)
     F = np.empty_like(r)
     short = s2y is not None and phi2 is not None and phi is not None
     s2y = np.zeros(n_sets) if not short else np.asarray(s2y, dtype=float)
-    a, b = np.zeros(n_sets), np.zeros(n_sets)
+    link = np.zeros(n) if link is None else np.asarray(link, dtype=float)
+    rho_m = np.zeros(n_sets) if rho_m is None else np.broadcast_to(np.asarray(rho_m, dtype=float), (n_sets,))
+    a, b, c = np.zeros(n_sets), np.zeros(n_sets), np.zeros(n_sets)
     P, P12, P22 = np.ones(n_sets), np.zeros(n_sets), s2y.copy()
+    P13, P23, P33 = np.zeros(n_sets), np.zeros(n_sets), np.ones(n_sets)
     for j in range(n):
         ph = np.zeros(n_sets) if phi is None else phi[:, j]
         ph2 = phi2[:, j] if short else np.zeros(n_sets)
+        q = rho_m * link[j]
         h = np.sqrt(s2x + (0.0 if rel_mm is None else rel_mm[:, j] ** 2))
-        ap, bp = ph * a, ph2 * b
+        e = math.sqrt(sd2[j])
+        ap, bp, cp = ph * a, ph2 * b, q * c
         Pp = ph * ph * P + (1.0 - ph * ph)
         P12p = ph * ph2 * P12
         P22p = ph2 * ph2 * P22 + (1.0 - ph2 * ph2) * s2y
-        F[:, j] = h * h * Pp + 2.0 * h * P12p + P22p + sd2[j]
-        v[:, j] = r[:, j] - h * ap - bp
-        K, K2 = (h * Pp + P12p) / F[:, j], (h * P12p + P22p) / F[:, j]
-        a, b = ap + K * v[:, j], bp + K2 * v[:, j]
-        P, P12, P22 = Pp - K * K * F[:, j], P12p - K * K2 * F[:, j], P22p - K2 * K2 * F[:, j]
+        P13p, P23p, P33p = ph * q * P13, ph2 * q * P23, q * q * P33 + (1.0 - q * q)
+        Su, Sz, Sc = h * Pp + P12p + e * P13p, h * P12p + P22p + e * P23p, h * P13p + P23p + e * P33p
+        F[:, j] = h * Su + Sz + e * Sc
+        v[:, j] = r[:, j] - h * ap - bp - e * cp
+        f = F[:, j]
+        a, b, c = ap + Su / f * v[:, j], bp + Sz / f * v[:, j], cp + Sc / f * v[:, j]
+        P, P12, P22 = Pp - Su * Su / f, P12p - Su * Sz / f, P22p - Sz * Sz / f
+        P13, P23, P33 = P13p - Su * Sc / f, P23p - Sz * Sc / f, P33p - Sc * Sc / f
     return v, F
 
 
 def whiten(x_mm, sd_mm, sigma_extra_mm: float, gap_mm, corr_len_mm: float | None,
-           sigma_short_mm: float = 0.0, short_corr_mm: float = SHORT_CORR_MM, rel_mm=None) -> np.ndarray:
+           sigma_short_mm: float = 0.0, short_corr_mm: float = SHORT_CORR_MM, rel_mm=None,
+           link=None, rho_m: float = 0.0) -> np.ndarray:
     """x (n,) whitened by the noise model: v / sqrt(F), ~N(0, 1) per sample if x is
     residual noise of that model. ``corr_len_mm`` None: independent samples (and no
-    short wobble); ``rel_mm`` (n,): the relative wobble's sd at each sample (mm) or None."""
+    short wobble); ``rel_mm`` (n,): the relative wobble's sd at each sample (mm) or None;
+    ``link`` (n,) and ``rho_m``: the measurement errors' neighbour links and correlation."""
     x = np.atleast_2d(np.asarray(x_mm, dtype=float))
     g = np.asarray(gap_mm, dtype=float)
     phi = None if corr_len_mm is None else ar1_phi(g, [[corr_len_mm]])
@@ -292,7 +339,8 @@ def whiten(x_mm, sd_mm, sigma_extra_mm: float, gap_mm, corr_len_mm: float | None
     v, F = _kalman(x, np.asarray(sd_mm, dtype=float) ** 2, np.array([float(sigma_extra_mm) ** 2]), phi,
                    np.array([float(sigma_short_mm) ** 2]) if short else None,
                    ar1_phi(g, [[short_corr_mm]]) if short else None,
-                   None if rel_mm is None else np.atleast_2d(np.asarray(rel_mm, dtype=float)))
+                   None if rel_mm is None else np.atleast_2d(np.asarray(rel_mm, dtype=float)),
+                   link, np.array([float(rho_m)]))
     return (v / np.sqrt(F))[0]
 
 
@@ -324,17 +372,19 @@ def missing_loglik(pred_mm, w_min_mm, sigma_extra_mm, student_nu=None,
     return np.where(np.isfinite(ll), ll, -np.inf)
 
 
-def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, c_ref, ell, sig_s, ell_s, nu, c_t, out):
+def _ar1_loglik_rows(pred, order, y, sd2, link, gap, sig, share, c_ref, ell, sig_s, ell_s, rho_m, nu, c_t,
+                     out):
     """Compiled :func:`pointwise_loglik` fused with the residuals: for every set i and
-    valid sample j, r = y_j - pred[i, order_j], through the two-component Kalman filter
-    of the module docstring (long wobble sig[i], ell[i]; short wobble sig_s[i] with the
-    fixed correlation length ell_s); ell[i] <= 0 means independent x (and no short
+    valid sample j, r = y_j - pred[i, order_j], through the Kalman filter of the module
+    docstring (long wobble sig[i], ell[i]; short wobble sig_s[i] with the fixed
+    correlation length ell_s; the measurement error, sd^2 = sd2[j], linked to the previous
+    sample's by rho_m[i] where link[j] = 1); ell[i] <= 0 means independent x (and no short
     component); nu <= 0 Gaussian, else Student-t with log normaliser c_t; share[i] the
     relative wobble's share f and c_ref the scan's median commanded width (mm): the long
     wobble's sd at a sample of model width m is sig sqrt(1 - f + f (max(m, 0) / c_ref)^2)
-    (module docstring; :func:`_kalman`).
-    Writes out (n_sets, n). With sig_s = 0 the short state stays 0 and the arithmetic is
-    the one-component filter's, term for term."""
+    (module docstring; :func:`_kalman`, the reference).
+    Writes out (n_sets, n). With sig_s = 0 the short state stays 0, with rho_m = 0 the
+    measurement state is white, and the arithmetic is the one-component filter's."""
     n_sets = pred.shape[0]
     n = order.shape[0]
     for i in prange(n_sets):
@@ -343,11 +393,16 @@ def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, c_ref, ell, sig_s, el
         q = 1.0 / (c_ref * c_ref)
         s2y = sig_s[i] * sig_s[i] if ell[i] > 0.0 else 0.0
         el = ell[i]
+        rm = rho_m[i]
         a = 0.0
         b = 0.0
+        c = 0.0
         P = 1.0
         P12 = 0.0
         P22 = s2y
+        P13 = 0.0
+        P23 = 0.0
+        P33 = 1.0
         g_prev = -1.0
         phi = 0.0
         phi2 = 0.0
@@ -360,28 +415,49 @@ def _ar1_loglik_rows(pred, order, y, sd2, gap, sig, share, c_ref, ell, sig_s, el
                     g_prev = g
             m = pred[i, order[j]]
             h = sig[i] * math.sqrt(1.0 - f + f * max(m, 0.0) * max(m, 0.0) * q) if f > 0.0 else sig[i]
+            e = math.sqrt(sd2[j])
+            qm = rm * link[j]
             ap = phi * a
             bp = phi2 * b
+            cp = qm * c
             Pp = phi * phi * P + (1.0 - phi * phi)
             P12p = phi * phi2 * P12
             P22p = phi2 * phi2 * P22 + (1.0 - phi2 * phi2) * s2y
-            F = h * h * Pp + 2.0 * h * P12p + P22p + sd2[j]
-            v = y[j] - m - h * ap - bp
+            P13p = phi * qm * P13
+            P23p = phi2 * qm * P23
+            P33p = qm * qm * P33 + (1.0 - qm * qm)
+            Su = h * Pp + P12p + e * P13p
+            Sz = h * P12p + P22p + e * P23p
+            Sc = h * P13p + P23p + e * P33p
+            F = h * Su + Sz + e * Sc
+            v = y[j] - m - h * ap - bp - e * cp
             if nu <= 0.0:
                 ll = -0.5 * (v * v / F + math.log(F) + LOG2PI)
             else:
                 ll = c_t - 0.5 * math.log(F) - 0.5 * (nu + 1.0) * math.log1p(v * v / (F * nu))
-            K = (h * Pp + P12p) / F
-            K2 = (h * P12p + P22p) / F
-            a = ap + K * v
-            b = bp + K2 * v
-            P = Pp - K * K * F
-            P12 = P12p - K * K2 * F
-            P22 = P22p - K2 * K2 * F
+            a = ap + Su / F * v
+            b = bp + Sz / F * v
+            c = cp + Sc / F * v
+            P = Pp - Su * Su / F
+            P12 = P12p - Su * Sz / F
+            P22 = P22p - Sz * Sz / F
+            P13 = P13p - Su * Sc / F
+            P23 = P23p - Sz * Sc / F
+            P33 = P33p - Sc * Sc / F
             out[i, j] = ll if math.isfinite(ll) else -math.inf
 
 
 _AR1_SERIAL, _AR1_PARALLEL = serial_and_parallel(_ar1_loglik_rows)
+
+
+def scan_links(sc) -> np.ndarray:
+    """(n_valid,) 1.0 where a valid sample's measurement error is linked to the previous
+    valid sample's (``sc.corr_prev`` nonzero: the table's ``width_corr_prev`` between
+    adjacent stations, fit/data.py), else 0.0; all 0 for scans without it."""
+    rho = getattr(sc, "corr_prev", None)
+    if rho is None:
+        return np.zeros(len(sc.order))
+    return (np.asarray(rho, dtype=float) != 0.0).astype(float)
 
 
 def track_span_mm(sc) -> float:
@@ -482,6 +558,7 @@ class JointProblem:
         self.index: list[np.ndarray] = []        # per scan: global index of each model param
         self.noise_index: list[tuple[int, int | None, int | None]] = []
         self.rel_index: list[int | None] = []       # per scan: noise.rel_share (relative wobble)
+        self.meas_index: list[int | None] = []      # per scan: noise.meas_corr (linked errors)
         # per scan: the median commanded width (mm), where sigma_extra is the wobble's sd
         # whatever its relative share (module docstring)
         self.c_ref_mm = [_median_commanded_mm(sc) for sc in scans]
@@ -527,6 +604,12 @@ class JointProblem:
                     names.append(SHORT_NAME + suffix)
                     priors[SHORT_NAME + suffix] = noise.short_prior
             self.noise_index.append((i_sig, i_cor, i_short))
+            i_meas = None
+            if noise.meas_corr and np.any(scan_links(sc)):
+                i_meas = len(names)
+                names.append(MEAS_NAME + suffix)
+                priors[MEAS_NAME + suffix] = noise.meas_prior
+            self.meas_index.append(i_meas)
         if prior_overrides:
             priors = apply_overrides(priors, prior_overrides)
         self.param_names = names
@@ -573,6 +656,11 @@ class JointProblem:
         for i_rel in self.rel_index:
             if i_rel is not None:
                 th[i_rel] = 0.0
+        # the measurement's own value of the linked errors' correlation (its table)
+        for sc, i_meas in zip(self.scans, self.meas_index):
+            if i_meas is not None:
+                rho = np.asarray(sc.corr_prev, dtype=float)
+                th[i_meas] = float(np.median(rho[rho != 0]))
         lo, hi = self.bounds.T
         return np.clip(th, lo, hi)
 
@@ -641,8 +729,10 @@ class JointProblem:
             share = np.ascontiguousarray(th[:, i_rel]) if i_rel is not None else np.zeros(n_sets)
             n = len(sc.order)
             buf = out if direct else np.empty((n_sets, n))
+            i_meas = self.meas_index[k]
+            rho_m = np.ascontiguousarray(th[:, i_meas]) if i_meas is not None else np.zeros(n_sets)
             kern(pred, *self._kernel_arrays(k), sig, share, self.c_ref_mm[k], ell, sig_s,
-                 float(self.noise.short_corr_mm), nu_f, c_t, buf)
+                 float(self.noise.short_corr_mm), rho_m, nu_f, c_t, buf)
             if buf is not out:
                 out[:, col:col + n] = buf
             col += n
@@ -655,15 +745,18 @@ class JointProblem:
         return out
 
     def _kernel_arrays(self, k: int) -> tuple:
-        """(order, y, sd^2, gap) of scan k as the AR(1) kernel takes them, built once: the
-        sampler calls :meth:`pointwise` thousands of times on the same data."""
+        """(order, y, sd^2, link, gap) of scan k as the AR(1) kernel takes them, built
+        once: the sampler calls :meth:`pointwise` thousands of times on the same data."""
         sc = self.scans[k]
-        key = (id(sc.order), id(sc.y_mm), id(sc.sd_mm), id(sc.gap_mm))
+        rho = getattr(sc, "corr_prev", None)
+        key = (id(sc.order), id(sc.y_mm), id(sc.sd_mm), id(sc.gap_mm), id(rho))
         cache = self.__dict__.setdefault("_arrays", {})
         if cache.get(k, (None,))[0] != key:
+            link = scan_links(sc) if self.meas_index[k] is not None else np.zeros(len(sc.order))
             cache[k] = (key, (np.ascontiguousarray(sc.order, dtype=np.int64),
                               np.ascontiguousarray(sc.y_mm, dtype=float),
                               np.ascontiguousarray(sc.sd_mm, dtype=float) ** 2,
+                              np.ascontiguousarray(link, dtype=float),
                               np.ascontiguousarray(sc.gap_mm, dtype=float)))
         return cache[k][1]
 
@@ -681,6 +774,14 @@ class JointProblem:
         m = np.maximum(np.asarray(pred_mm, dtype=float), 0.0)
         return sig * math.sqrt(1.0 - f), sig * math.sqrt(f) * m / self.c_ref_mm[k]
 
+    def meas_parts(self, theta, k: int) -> tuple[np.ndarray | None, float]:
+        """Scan ``k``'s linked measurement errors for one theta: (link (n_valid,) or None,
+        correlation ``noise.meas_corr``), as :func:`whiten` takes them."""
+        i_meas = self.meas_index[k]
+        if i_meas is None:
+            return None, 0.0
+        return scan_links(self.scans[k]), float(np.asarray(theta, dtype=float)[i_meas])
+
     def residuals(self, theta) -> list[np.ndarray]:
         """Residuals y - m (mm) at the valid samples of each scan, for one theta."""
         th = np.atleast_2d(theta)[:1]
@@ -696,5 +797,6 @@ class JointProblem:
             i_sig, i_cor, i_short = self.noise_index[k]
             fixed, rel = self.wobble_parts(th[0], k, m)
             out.append(whiten(sc.y_mm - m, sc.sd_mm, fixed, sc.gap_mm, None if i_cor is None else th[0, i_cor],
-                              0.0 if i_short is None else float(th[0, i_short]), self.noise.short_corr_mm, rel))
+                              0.0 if i_short is None else float(th[0, i_short]), self.noise.short_corr_mm, rel,
+                              *self.meas_parts(th[0], k)))
         return np.concatenate(out)

@@ -24,6 +24,13 @@ CSV columns (README "Widths CSV"):
                  of its neighbours' (mm); the fit's white measurement term (fit/likelihood.py),
                  whose along-track wobble models the shared part. Empty in older tables:
                  the fit then takes width_sd_mm
+    width_corr_prev  optional: the correlation (0-1) of this station's own error with the
+                 previous station's on its track, STRIP_MM before it, where the despeckling
+                 along the track (measure/widths.py NEIGHBOUR_CORR) filtered both from shared
+                 pixels. Nonzero links the two errors in the fit, which estimates their
+                 correlation per scan from this start (``noise.meas_corr``,
+                 fit/likelihood.py). Empty or 0: independent (older tables, truths, a
+                 station whose predecessor was not filtered with it)
 """
 from __future__ import annotations
 
@@ -39,7 +46,7 @@ from calib.fileio import atomic_write_text
 
 COLUMNS = ("track", "s_mm", "x_mm", "y_mm", "t_s", "width_mm", "width_sd_mm", "valid", "flag")
 #: Columns a table may lack (read as NaN).
-OPTIONAL = ("blur_mm", "light_angle_deg", "width_sd_own_mm")
+OPTIONAL = ("blur_mm", "light_angle_deg", "width_sd_own_mm", "width_corr_prev")
 
 
 @dataclass
@@ -56,9 +63,12 @@ class WidthTable:
     blur_mm: np.ndarray = field(default=None)
     light_angle_deg: np.ndarray = field(default=None)
     width_sd_own_mm: np.ndarray = field(default=None)
+    width_corr_prev: np.ndarray = field(default=None)
 
     def __post_init__(self):
         n = len(self.track)
+        self.width_corr_prev = (np.zeros(n) if self.width_corr_prev is None
+                                else np.nan_to_num(np.asarray(self.width_corr_prev, dtype=float).reshape(n)))
         self.width_sd_own_mm = (np.full(n, np.nan) if self.width_sd_own_mm is None
                                 else np.asarray(self.width_sd_own_mm, dtype=float).reshape(n))
         self.blur_mm = (np.full(n, np.nan) if self.blur_mm is None
@@ -93,11 +103,12 @@ class WidthTable:
         w.writerow(COLUMNS + OPTIONAL)
         for i in range(len(self)):
             b, a, o = self.blur_mm[i], self.light_angle_deg[i], self.width_sd_own_mm[i]
+            r = self.width_corr_prev[i]
             w.writerow([int(self.track[i]), f"{self.s_mm[i]:.4f}", f"{self.x_mm[i]:.4f}",
                         f"{self.y_mm[i]:.4f}", f"{self.t_s[i]:.5f}", f"{self.width_mm[i]:.5f}",
                         f"{self.width_sd_mm[i]:.5f}", int(self.valid[i]), self.flag[i] or "",
                         f"{b:.5f}" if np.isfinite(b) else "", f"{a:.1f}" if np.isfinite(a) else "",
-                        f"{o:.5f}" if np.isfinite(o) else ""])
+                        f"{o:.5f}" if np.isfinite(o) else "", f"{r:.3f}" if r != 0 else ""])
         return buf.getvalue()
 
     def save(self, path) -> Path:
@@ -143,4 +154,8 @@ class WidthTable:
             raise UserError(f"widths file {path}: {int(bad.sum())} valid sample(s) have NaN/inf width "
                             "or a non-positive width_sd_mm (first at row "
                             f"{int(np.argmax(bad)) + 2}); mark them valid=0 or re-measure")
+        rho = table.width_corr_prev
+        if np.any((rho < 0) | (rho >= 1)):
+            raise UserError(f"widths file {path}: width_corr_prev must lie in [0, 1), row "
+                            f"{int(np.argmax((rho < 0) | (rho >= 1))) + 2} has {rho[(rho < 0) | (rho >= 1)][0]:g}")
         return table

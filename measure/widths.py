@@ -169,6 +169,16 @@ STRIP_MM = 0.25
 #: :func:`_despeckle`'s element along the track (mm): longer than the plate's grain as a
 #: phone blurs it (specks 0.1-0.3 mm, 0.4-0.5 mm seen through 0.16 mm of blur).
 SPECK_MM = 0.45
+#: Correlation of neighbouring stations' own width errors in a despeckled run (the
+#: element spans two stations, so both are filtered from shared pixels). Measured on
+#: renders with truth (session 38; lag-1 correlation of error / sd): 0.45 on `make demo`'s
+#: 600 dpi flatbed scan (0.07 without the despeckling; lags 2, 3: 0.11, 0.02), 0.35 on
+#: bench_realism's erf flatbed, 0.48 / 0.68 with every phenomenon on a dark / light plate
+#: (of which 0.17 / 0.3 is shared beyond 2 mm), 0.77-0.80 on the 400 dpi test renders
+#: (lags 2, 3: 0.38-0.45, 0.16-0.22). It varies with the dpi and the picture, so the fit
+#: estimates it per scan (``noise.meas_corr``, fit/likelihood.py) and starts from this;
+#: the table says which stations are linked (``width_corr_prev``).
+NEIGHBOUR_CORR = 0.45
 #: A profile's samples stop this many blur sigmas short of the nearest other bead's edge
 #: (its erfc tail there is 0.7 %) ...
 NEIGHBOUR_CLEAR_SIGMAS = 3.0
@@ -370,7 +380,8 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     # own, which the fit's white term takes (its wobble takes what neighbours share). One
     # factor on the own part overstates the error of the noisiest stations (0.5 x on
     # bench_realism's all-phenomena scenes): the own part is no larger than the whole.
-    sd_own = sd * _scatter_factor(smp.track, w, sd, valid)
+    rho = neighbour_corr(smp, t)
+    sd_own = sd * _scatter_factor(smp.track, w, sd, valid, rho)
     sd, sd_scale, sd_floor = calibrated_sd(smp.track, smp.s_mm, w, sd, valid)
     sd_own = np.minimum(sd_own, sd)
     # where the width changes along the track, not knowing where along it the station is
@@ -383,7 +394,8 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     w = np.where(np.isfinite(w), w, np.nan)
     sd = np.where(np.isfinite(sd), sd, np.nan)
     table = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
-                       width_mm=w, width_sd_mm=sd, valid=valid, flag=flag, width_sd_own_mm=sd_own)
+                       width_mm=w, width_sd_mm=sd, valid=valid, flag=flag, width_sd_own_mm=sd_own,
+                       width_corr_prev=rho)
     return WidthMeasurement(table=table, centre_mm=c, blur_mm=fit.params[:, 5], amplitude=fit.amplitude,
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else (), glare_streak=streak,
@@ -518,27 +530,48 @@ def _despeckle(stack, smp: Samples, t, speck_mm: float | None = None):
     flatten is the bead's own bumps and necks shorter than ``speck_mm``, below the scales
     the fit reads. Runs shorter than two elements are left alone."""
     lines, n, m = stack.shape
-    k = int(round((SPECK_MM if speck_mm is None else speck_mm) / (STRIP_MM / lines)))
+    k = _speck_samples(lines, speck_mm)
+    out = stack.copy()
+    for idx in _despeckled_runs(smp, t, lines, speck_mm):
+        seq = stack[:, idx, :].transpose(1, 0, 2).reshape(len(idx) * lines, m)
+        # each end continued by its own value: a run that starts on its maximum (an end blob)
+        # or minimum stays monotone there; mirrored, the end became a peak the opening cut (the
+        # demo's start blob read 1.05 for 1.19 mm, and the blob's reach shrank by a station)
+        seq = np.pad(seq, ((k, k), (0, 0)), mode="edge")
+        seq = 0.5 * (_close(_open(seq, k), k) + _open(_close(seq, k), k))[k:-k]
+        out[:, idx, :] = seq.reshape(len(idx), lines, m).transpose(1, 0, 2)
+    return out
+
+
+def _speck_samples(lines: int, speck_mm: float | None = None) -> int:
+    """:func:`_despeckle`'s element in samples along the track (STRIP_MM / ``lines`` apart)."""
+    return int(round((SPECK_MM if speck_mm is None else speck_mm) / (STRIP_MM / lines)))
+
+
+def _despeckled_runs(smp: Samples, t, lines: int, speck_mm: float | None = None) -> list[np.ndarray]:
+    """The runs :func:`_despeckle` filters, each an index array of stations in order along
+    the track: consecutive stations (STRIP_MM apart) of one track with the same offsets ``t``,
+    at least two elements long."""
+    n = len(smp.track)
+    k = _speck_samples(lines, speck_mm)
     if k < 2 or n < 2:
-        return stack
+        return []
     order = np.lexsort((smp.s_mm, smp.track))
     tr, ss, to = np.asarray(smp.track)[order], np.asarray(smp.s_mm)[order], t[order]
     brk = np.ones(n, bool)
     brk[1:] = ((tr[1:] != tr[:-1]) | (np.abs(np.diff(ss) - STRIP_MM) > 1e-6)
                | np.any(np.abs(to[1:] - to[:-1]) > 1e-9, axis=1))
     starts = np.flatnonzero(brk)
-    out = stack.copy()
-    for a, b in zip(starts, np.append(starts[1:], n)):
-        if (b - a) * lines < 2 * k:
-            continue
-        idx = order[a:b]
-        seq = stack[:, idx, :].transpose(1, 0, 2).reshape((b - a) * lines, m)
-        # each end continued by its own value: a run that starts on its maximum (an end blob)
-        # or minimum stays monotone there; mirrored, the end became a peak the opening cut (the
-        # demo's start blob read 1.05 for 1.19 mm, and the blob's reach shrank by a station)
-        seq = np.pad(seq, ((k, k), (0, 0)), mode="edge")
-        seq = 0.5 * (_close(_open(seq, k), k) + _open(_close(seq, k), k))[k:-k]
-        out[:, idx, :] = seq.reshape(b - a, lines, m).transpose(1, 0, 2)
+    return [order[a:b] for a, b in zip(starts, np.append(starts[1:], n)) if (b - a) * lines >= 2 * k]
+
+
+def neighbour_corr(smp: Samples, t, lines: int = STRIP_LINES, speck_mm: float | None = None) -> np.ndarray:
+    """Per station (n,): the correlation of its own width error with the previous
+    station's on its track (the table's ``width_corr_prev``): NEIGHBOUR_CORR where
+    :func:`_despeckle` filtered both in one run, 0 elsewhere."""
+    out = np.zeros(len(smp.track))
+    for idx in _despeckled_runs(smp, t, lines, speck_mm):
+        out[idx[1:]] = NEIGHBOUR_CORR
     return out
 
 
@@ -774,12 +807,15 @@ def slope_sd(track, s_mm, w_mm, sd_mm, valid, place_sd_mm, half_mm: float = 0.5,
     return out * np.where(ok, place, 0.0)
 
 
-def _scatter_factor(track, w, sd, valid) -> float:
+def _scatter_factor(track, w, sd, valid, rho=None) -> float:
     """Factor >= 1 on the fit sd so that it explains the observed station-to-station scatter:
     the station's own error (``width_sd_own_mm``), what the fit's white term takes.
 
     Second differences d2 = w[i-1] - 2 w[i] + w[i+1] along a track remove the smooth
-    (physical) width changes; for independent errors var(d2) = 6 sd^2. The fit sd misses
+    (physical) width changes; for errors whose neighbours correlate by rho_i (station i with
+    i - 1; ``rho``, :func:`neighbour_corr`, None: 0) and no further, var(d2) =
+    (6 - 4 (rho_i + rho_(i+1))) sd^2: 6 sd^2 for independent ones, 2.4 sd^2 despeckled
+    (dividing by 6 there read the own error 1.6x small). The fit sd misses
     correlated noise (JPEG blocks, texture), which shows up here. Robust (MAD) so steps
     and blobs do not count.
     """
@@ -787,8 +823,9 @@ def _scatter_factor(track, w, sd, valid) -> float:
     ok = same & valid[1:-1] & valid[:-2] & valid[2:]
     if ok.sum() < 30:
         return 1.0
-    d2 = (w[:-2] - 2 * w[1:-1] + w[2:])[ok]
-    observed = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)
+    r = np.zeros(len(track)) if rho is None else np.asarray(rho, dtype=float)
+    d2 = ((w[:-2] - 2 * w[1:-1] + w[2:]) / np.sqrt(6.0 - 4.0 * (r[1:-1] + r[2:])))[ok]
+    observed = 1.4826 * np.median(np.abs(d2 - np.median(d2)))
     predicted = np.median(sd[1:-1][ok])
     return float(max(1.0, observed / predicted)) if predicted > 0 else 1.0
 

@@ -565,3 +565,51 @@ def test_despeckling_removes_specks_shorter_than_its_element_and_keeps_monotone_
     t = np.zeros((n, 1))
     out = _despeckle((blob + speck + bump)[..., None].astype(np.float32), smp, t)[..., 0]
     np.testing.assert_allclose(out, blob + bump, atol=1e-6)
+
+
+def test_despeckled_neighbours_are_linked_where_they_share_filtered_pixels():
+    """measure/widths.py neighbour_corr: a station is linked to its predecessor (the table's
+    width_corr_prev) only when _despeckle filtered both in one run: same track, STRIP_MM
+    apart, the same profile offsets, a run of at least two elements. A new offset grid
+    starts a new run (its first station unlinked); a run too short to filter is not linked."""
+    from measure.widths import NEIGHBOUR_CORR, STRIP_MM, neighbour_corr
+    from patterns.manifest import Samples
+
+    n = 43
+    track = np.r_[np.zeros(40, np.int64), np.ones(3, np.int64)]
+    s = STRIP_MM * np.r_[np.arange(40), np.arange(3)]
+    smp = Samples(track=track, s_mm=s, x_mm=s, y_mm=track * 5.0, t_s=s / 10.0, nx=np.zeros(n),
+                  ny=np.ones(n), width_nominal_mm=np.full(n, 0.45), height_mm=np.full(n, 0.2))
+    t = np.tile(np.linspace(-1, 1, 8), (n, 1))
+    t[20:40] *= 1.2                      # a wider window from station 20 on: another run
+    rho = neighbour_corr(smp, t)
+    expect = np.zeros(n)
+    expect[1:20] = NEIGHBOUR_CORR
+    expect[21:40] = NEIGHBOUR_CORR
+    np.testing.assert_array_equal(rho, expect)
+
+
+def test_linked_stations_errors_do_correlate_and_the_fit_links_only_adjacent_ones(flat):
+    """On the 400 dpi render the table links nearly every valid station to its predecessor
+    and their errors do correlate (> 0.3; 0.77 measured; the fit estimates the value,
+    noise.meas_corr); fit/data.py keeps a link only between adjacent stations: one whose
+    predecessor is invalid starts afresh."""
+    from fit.data import scan_from_table
+
+    man, r, wm = flat
+    tb = wm.table
+    e = tb.width_mm - r.table.width_mm
+    z = (e - np.mean(e[tb.valid])) / tb.width_sd_own_mm
+    i = np.flatnonzero(tb.width_corr_prev > 0)
+    assert len(i) > 0.9 * tb.valid.sum()
+    i = i[tb.valid[i] & tb.valid[i - 1] & (tb.track[i] == tb.track[i - 1])]
+    assert np.corrcoef(z[i], z[i - 1])[0, 1] > 0.3
+    # knock out one valid, linked station in the middle of a run
+    mid = [k for k in i[len(i) // 2:] if k - 1 in set(i) and k + 1 in set(i)]
+    k = mid[0]
+    tb2 = tb.subset(np.ones(len(tb), bool))
+    tb2.valid[k] = False
+    sc = scan_from_table(tb2, man, build_ctx=False)
+    pos = int(np.flatnonzero(sc.order == k + 1)[0])
+    assert sc.corr_prev[pos] == 0.0
+    assert sc.corr_prev[pos + 1] > 0 and sc.corr_prev[pos - 1] > 0
