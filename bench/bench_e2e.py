@@ -151,6 +151,7 @@ def _one(job):
     from fit.sampler import fit_map, fit_mcmc, make_problem
     from fit.measurement import prior_overrides, scatter
     from fit.noise_envelope import widen
+    from fit.offset_envelope import widen_offset
     from fit.trust import assess, is_structured, residual_structure
     from patterns.profile import load_profile
 
@@ -187,7 +188,9 @@ def _one(job):
             if is_structured(rs):
                 rs["refits"] = structure_check(problem, m, rs["covariate"], r.map.values, r.map.bic, ci95,
                                                seed=seed)
-            # the intervals `calib fit` reports: widened to hold the short-wobble fit too
+            # the intervals `calib fit` reports: widened by the width calibration's doubt where
+            # the model has no scan_bias, and to hold the short-wobble fit too
+            widen_offset(pb, r, states, seed=seed)
             env = widen(pb, r, seed=seed)
             # the scan's own scatter, as `calib fit` writes it for the verdict
             r.diagnostics["measurement"] = {"scatter": [{"scan": sc.name, **scatter(sc)}]}

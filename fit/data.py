@@ -192,13 +192,7 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
     gap = np.concatenate([[np.inf], np.diff(s)])
     new = np.concatenate([[True], tr[1:] != tr[:-1]]) | (gap > MAX_GAP_MM) | (gap <= 0)
     gap = np.where(new, np.inf, gap)
-    # the measurement's neighbour correlation holds only between a station and the one
-    # just before it (rows of the table in track, s order): one with an invalid station
-    # between them shares no filtered pixels with it
-    rank = np.empty(len(table), np.int64)
-    rank[np.lexsort((table.s_mm, table.track))] = np.arange(len(table))
-    adjacent = np.concatenate([[False], np.diff(rank[idx]) == 1]) & ~new
-    corr_prev = np.where(adjacent, table.width_corr_prev[idx], 0.0)
+    corr_prev = linked_corr(table, idx, new)
     if ctx is None and build_ctx:
         from fit.context import SimContext
         ctx = SimContext.build(manifest, samples)
@@ -212,6 +206,18 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
     return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
                     y_mm=table.width_mm[idx].copy(), sd_mm=sd[idx].copy(),
                     gap_mm=gap, ctx=ctx, missing_idx=missing_rows(table, samples, ctx), corr_prev=corr_prev)
+
+
+def linked_corr(table: WidthTable, idx, new) -> np.ndarray:
+    """(len(idx),) the table's ``width_corr_prev`` at the valid rows ``idx`` (sorted by
+    track, s), kept only where the previous valid row is the station just before it on the
+    same track (``new``: a track start or a gap): one with an invalid station between them
+    shares no filtered pixels with it. 0 elsewhere."""
+    idx = np.asarray(idx, dtype=np.int64)
+    rank = np.empty(len(table), np.int64)
+    rank[np.lexsort((table.s_mm, table.track))] = np.arange(len(table))
+    adjacent = np.concatenate([[False], np.diff(rank[idx]) == 1]) & ~np.asarray(new, bool)
+    return np.where(adjacent, table.width_corr_prev[idx], 0.0)
 
 
 def missing_rows(table: WidthTable, samples, ctx=None) -> np.ndarray:

@@ -67,21 +67,67 @@ def whitening_matrix(sc, sigma_extra_mm: float, corr_len_mm: float | None, sigma
     JointProblem.meas_parts; ``rel_mm`` (n,) the relative wobble's sd at each, mm, or None):
     the whitening is linear in x, so M is it applied to the unit vectors."""
     n = len(sc.y_mm)
-    sd2 = np.asarray(sc.sd_mm, dtype=float) ** 2
-    g = np.asarray(sc.gap_mm, dtype=float)
-    phi = None if corr_len_mm is None else ar1_phi(g, [[corr_len_mm]])
-    short = phi is not None and sigma_short_mm > 0
     cols = []
     for k0 in range(0, n, _BATCH):
         eye = np.zeros((min(_BATCH, n - k0), n))
         eye[np.arange(len(eye)), k0 + np.arange(len(eye))] = 1.0
-        v, F = _kalman(eye, sd2, np.array([sigma_extra_mm ** 2]), phi,
-                       np.array([sigma_short_mm ** 2]) if short else None,
-                       ar1_phi(g, [[short_corr_mm]]) if short else None,
-                       None if rel_mm is None else np.broadcast_to(np.asarray(rel_mm, dtype=float), eye.shape),
-                       link, np.array([float(rho_m)]))
-        cols.append(v / np.sqrt(F))
+        cols.append(_whiten_rows(sc, eye, sigma_extra_mm, corr_len_mm, sigma_short_mm, short_corr_mm, rel_mm,
+                                 link, rho_m))
     return np.vstack(cols).T
+
+
+def _whiten_rows(sc, X, sigma_extra_mm, corr_len_mm, sigma_short_mm, short_corr_mm, rel_mm, link, rho_m):
+    """Each row of X (m, n) whitened by scan ``sc``'s noise model (as :func:`whitening_matrix`)."""
+    sd2 = np.asarray(sc.sd_mm, dtype=float) ** 2
+    g = np.asarray(sc.gap_mm, dtype=float)
+    phi = None if corr_len_mm is None else ar1_phi(g, [[corr_len_mm]])
+    short = phi is not None and sigma_short_mm > 0
+    m = X.shape[0]
+    v, F = _kalman(X, sd2, np.full(m, sigma_extra_mm ** 2),
+                   None if phi is None else np.broadcast_to(phi, X.shape),
+                   np.full(m, sigma_short_mm ** 2) if short else None,
+                   np.broadcast_to(ar1_phi(g, [[short_corr_mm]]), X.shape) if short else None,
+                   None if rel_mm is None else np.broadcast_to(np.asarray(rel_mm, dtype=float), X.shape),
+                   link, np.full(m, float(rho_m)))
+    return v / np.sqrt(F)
+
+
+def _scan_noise(problem, theta, k: int, pred_mm) -> tuple:
+    """The whitening arguments of scan ``k`` at ``theta`` (after ``sc``, ``X``)."""
+    i_sig, i_cor, i_short = problem.noise_index[k]
+    fixed, rel = problem.wobble_parts(theta, k, pred_mm)
+    return (fixed, None if i_cor is None else float(theta[i_cor]),
+            0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm, rel,
+            *problem.meas_parts(theta, k))
+
+
+def _jacobian(problem, theta, k: int, free, rel_step: float) -> np.ndarray:
+    """d(model width)/d(theta) (n_valid, len(free)) at scan ``k``'s valid stations (mm per
+    parameter unit; central differences, one-sided at a bound)."""
+    sc = problem.scans[k]
+    lo, hi = problem.bounds.T
+    J = np.empty((len(sc.order), len(free)))
+    for j, i in enumerate(free):
+        h = rel_step * max(abs(theta[i]), 1e-3)
+        # a one-sided difference at a bound (a parameter at 0 with a lower bound of 0)
+        up, dn = min(theta[i] + h, hi[i]), max(theta[i] - h, lo[i])
+        tp, tm = theta.copy(), theta.copy()
+        tp[i], tm[i] = up, dn
+        J[:, j] = (problem.predict(tp[None], k)[0, sc.order] - problem.predict(tm[None], k)[0, sc.order]) / (up - dn)
+    return J
+
+
+def _prior_curvature(problem, theta, free, rel_step: float) -> np.ndarray:
+    """P (len(free), len(free)): minus the log prior's second derivative on the diagonal."""
+    lo, hi = problem.bounds.T
+    P = np.zeros((len(free), len(free)))
+    for j, i in enumerate(free):
+        h = rel_step * max(abs(theta[i]), 1e-3)
+        up, dn = min(theta[i] + h, hi[i]), max(theta[i] - h, lo[i])
+        lp = [float(problem.priors[i].log_prob(np.array([x]))[0]) for x in (dn, theta[i], up)]
+        if all(np.isfinite(lp)) and up - theta[i] > 0 and theta[i] - dn > 0:
+            P[j, j] = max(0.0, -(lp[2] - 2 * lp[1] + lp[0]) / ((up - dn) / 2) ** 2)
+    return P
 
 
 def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
@@ -89,29 +135,32 @@ def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
     (fit.likelihood.JointProblem) at ``theta`` (its MAP)."""
     theta = np.asarray(theta, dtype=float)
     sc = problem.scans[k]
-    i_sig, i_cor, i_short = problem.noise_index[k]
     free = [i for i, name in enumerate(problem.param_names) if not is_noise(name)]
-    lo, hi = problem.bounds.T
-
-    def pred(th):
-        return problem.predict(th[None], k)[0, sc.order]
-
-    J = np.empty((len(sc.order), len(free)))
-    P = np.zeros((len(free), len(free)))
-    for j, i in enumerate(free):
-        h = rel_step * max(abs(theta[i]), 1e-3)
-        # a one-sided difference at a bound (a parameter at 0 with a lower bound of 0)
-        up, dn = min(theta[i] + h, hi[i]), max(theta[i] - h, lo[i])
-        tp, tm = theta.copy(), theta.copy()
-        tp[i], tm[i] = up, dn
-        J[:, j] = (pred(tp) - pred(tm)) / (up - dn)
-        lp = [float(problem.priors[i].log_prob(np.array([x]))[0]) for x in (dn, theta[i], up)]
-        if all(np.isfinite(lp)) and up - theta[i] > 0 and theta[i] - dn > 0:
-            P[j, j] = max(0.0, -(lp[2] - 2 * lp[1] + lp[0]) / ((up - dn) / 2) ** 2)
-    fixed, rel = problem.wobble_parts(theta, k, pred(theta))
-    M = whitening_matrix(sc, fixed, None if i_cor is None else float(theta[i_cor]),
-                         0.0 if i_short is None else float(theta[i_short]), problem.noise.short_corr_mm, rel,
-                         *problem.meas_parts(theta, k))
+    J = _jacobian(problem, theta, k, free, rel_step)
+    P = _prior_curvature(problem, theta, free, rel_step)
+    M = whitening_matrix(sc, *_scan_noise(problem, theta, k, problem.predict(theta[None], k)[0, sc.order]))
     Jw = M @ J
     A = np.linalg.solve(Jw.T @ Jw + P, Jw.T @ M)
     return Influence(names=[problem.param_names[i] for i in free], A=A, rows=np.asarray(sc.order), theta=theta)
+
+
+def offset_response(problem, theta, rel_step: float = 1e-4) -> tuple[list, np.ndarray]:
+    """How the MAP moves when every width of one scan is off by the same amount: (names of
+    the parameters that respond, R (n_scans, len(names)) in parameter units per mm of
+    offset). Eq. 1 with e = 1 at every valid station of scan k and 0 elsewhere, the
+    information summed over all scans (a shared parameter is held by the others too):
+    R_k = (sum_j Jw_j^T Jw_j + P)^-1 Jw_k^T (M_k 1). Each whitening is one pass of the
+    Kalman filter over a vector, so no (n, n) matrix is formed."""
+    theta = np.asarray(theta, dtype=float)
+    free = [i for i, name in enumerate(problem.param_names) if not is_noise(name)]
+    info = _prior_curvature(problem, theta, free, rel_step)
+    rhs = []
+    for k, sc in enumerate(problem.scans):
+        J = _jacobian(problem, theta, k, free, rel_step)
+        W = _whiten_rows(sc, np.vstack([J.T, np.ones((1, len(sc.order)))]),
+                         *_scan_noise(problem, theta, k, problem.predict(theta[None], k)[0, sc.order]))
+        Jw, one_w = W[:-1].T, W[-1]
+        info = info + Jw.T @ Jw
+        rhs.append(Jw.T @ one_w)
+    R = np.linalg.solve(info, np.array(rhs).T).T
+    return [problem.param_names[i] for i in free], R

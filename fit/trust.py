@@ -203,9 +203,14 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
                         f"fit `{c['model']}`")
     checks["nuisance"] = nuisance
     at_bound = []
+    # the posterior's own interval: one the width offset's doubt widened (fit/offset_envelope.py)
+    # may reach a bound because of that doubt, not because the data want the bound
+    by_offset = (diag.get("offset_envelope") or {}).get("widened") or {}
     for name, p in params.items():
         if _is_noise(name) or name not in priors:
             continue
+        if name in by_offset:
+            p = {**p, "ci95": by_offset[name]["ci95_posterior"]}
         msg = _bound_problem(name, p, priors[name])
         if msg:
             problems.append(msg)

@@ -566,3 +566,24 @@ def test_grouped_move_frees_a_walker_started_outside_the_support_without_warning
     last = s.get_chain()[-1]
     assert np.all(np.abs(last) < 1.0)
     assert np.all(np.isfinite(s.get_log_prob()[-1]))
+
+
+def test_laplace_sds_of_the_print_survive_a_noise_parameter_without_curvature(monkeypatch):
+    """When the Hessian over every free parameter fails (a wobble's sd near its floor, below
+    the measurement's own, has a curvature of either sign), the print's parameters still
+    get theirs with the noise held at the MAP: a constant width's sd is sd / sqrt(n), not
+    the 1 % fallback every parameter got before."""
+    import fit.sampler as fs
+    from test_offset_envelope import ConstModel, _scan
+
+    real = fs._hessian_z
+
+    def fails_with_noise(problem, tr, z0, h=1e-3, free=None):
+        if free is None or any(free[i] and n.startswith("noise.") for i, n in enumerate(problem.param_names)):
+            raise np.linalg.LinAlgError("no curvature")
+        return real(problem, tr, z0, h=h, free=free)
+
+    monkeypatch.setattr(fs, "_hessian_z", fails_with_noise)
+    sc = _scan(n=400, sd=0.005)
+    m = fit_map(JointProblem([sc], [ConstModel()]))
+    assert math.sqrt(m.cov[0, 0]) == pytest.approx(0.005 / math.sqrt(400), rel=0.05)

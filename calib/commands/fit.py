@@ -167,6 +167,10 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         if is_structured(rs):
             rs["refits"] = structure_check(extended, model_spec, rs["covariate"], res.map.values,
                                            res.map.bic, ci95, seed=seed)
+    from fit.offset_envelope import widen_offset
+
+    # the calibration's doubt of the widths' offset, which a model without scan_bias takes as 0
+    widen_offset(problem, res, states, seed=seed, derive=derive)
     if envelope:
         from fit.noise_envelope import widen
 
@@ -312,9 +316,12 @@ def summary_text(res) -> str:
         lines.append(f"mode {i}: {phys}  (BIC {m['bic'] - res.map.modes[0]['bic']:+.1f} vs the best)")
     from fit.noise_envelope import envelope_line
 
-    env = envelope_line(res.diagnostics.get("noise_envelope"))
-    if env:
-        lines.append(env)
+    from fit.offset_envelope import offset_line
+
+    for env in (offset_line(res.diagnostics.get("offset_envelope")),
+                envelope_line(res.diagnostics.get("noise_envelope"))):
+        if env:
+            lines.append(env)
     fw = res.derived.get("firmware")
     if fw and not res.trust.get("trustworthy", True):
         pa = res.derived["pressure_advance_s"]

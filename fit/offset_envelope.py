@@ -1,0 +1,123 @@
+"""Intervals that hold the width calibration's doubt: the posterior widened by what the
+measurement does not know of the widths' common offset.
+
+`calib measure` calibrates the apparent widths against the print's own width reference
+and says how well it knows the offset that remains (``apparent_width.offset_sd_mm`` of
+its summary: 0.67 um on `make demo`'s 600 dpi flatbed scan). A model without
+``scan_bias`` takes that offset as exactly 0, and some parameters are steep in it. Measured
+on the demo's setup (adventurer3 spiral, truth pa+backpressure+thermal, flatbed 600 dpi,
+seeds 2-11, MAP of `pa+backpressure+thermal`; fit/influence.py, the response of the MAP to
+a constant offset of every width): thermal.tau_s moves 4.0 s per um of offset (its
+posterior sd 0.07 s), pa.tau_s 0.0017 s per um (sd 0.0004 s). The remaining offsets were
+0.03-0.23 um, and the MAP's thermal.tau_s missed its truth by more than 1.96 sds on 6 of 10
+seeds; the influence of the offset alone (-8.1 sds on seed 4, -5.1 on seed 10) was the
+miss. Adding ``scan_bias`` to the model did not mend it (thermal.a then traded with its
+width-scale term b1, |z| 4.8-5.2 on 3 of 6 seeds), and its posterior of b0 did not find the
+offset (-0.43 to +0.19 um for -0.07 to +0.23): the model's shape places it, as
+fit/trust.py says of the rides-the-offset check, so the doubt to carry is the
+measurement's, not the posterior's.
+
+So :func:`widen_offset`: for every scan whose widths were calibrated (the summary's
+``applied``) and whose model has no ``scan_bias.b0_mm``, the offset's doubt b_k ~ N(0,
+s_k^2), s_k the prior `calib fit` would give b0 (fit.measurement.b0_prior: the summary's
+offset_sd_mm, floored), is carried through the MAP's linear response R_k (parameter per mm;
+fit.influence.offset_response) into every posterior draw: x' = x + R_k b_k (x' = x exp(R_k
+b_k / x_MAP) for a positive parameter, whose posterior is skewed), one b_k per draw shared
+by all parameters. Every non-noise parameter's 68/90/95 % interval becomes the hull of the
+posterior's and the shifted draws', and every derived value's (the firmware numbers) the
+same; medians and firmware lines stay the posterior's. This is the Laplace limit of
+marginalising an offset whose prior the data do not narrow.
+
+Full fits only: `--map-only` writes the MAP's Laplace sds as they are.
+Uncalibrated widths are not widened here: their doubt is the whole apparent-width offset
+(tens of um), and `calib fit` already says to add scan_bias (fit/measurement.py notes).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from fit.likelihood import is_noise
+from fit.noise_envelope import _LEVELS, _hull, union_derived
+
+#: the parameter named for the widths' common offset (a model with it carries the doubt)
+OFFSET_PARAM = "scan_bias.b0_mm"
+
+
+def offset_doubts(problem, states) -> list:
+    """Per scan of ``problem``: the offset's doubt s_k (mm) to carry, or None (uncalibrated
+    widths, no calibration known, or a model that fits the offset itself)."""
+    from fit.measurement import b0_prior
+
+    by_scan = {st.get("scan"): st.get("calibration") for st in states or ()}
+    names = set(problem.param_names)
+    out = []
+    for sc in problem.scans:
+        cal = by_scan.get(sc.name)
+        own = {OFFSET_PARAM, f"{OFFSET_PARAM}@{sc.name}"} & names
+        out.append(float(b0_prior(cal)["sd"]) if cal and cal.get("applied") and not own else None)
+    return out
+
+
+def widen_offset(problem, result, states, *, seed: int = 0, derive=None) -> dict | None:
+    """Widen ``result`` (fit.result.FitResult of ``problem``) in place by the width offset's
+    doubt (module docstring) and return what was done (``result.diagnostics
+    ["offset_envelope"]``): {"applied", "offset_sd_mm": {scan: s_k}, "response":
+    {name: {scan: R_k}} (parameter unit per mm), "widened": {name: {"ci95_posterior",
+    "ci95"}}}. ``derive(samples) -> dict``: fit.derived.derived_values for draws in
+    ``problem``'s order; ``result.derived`` is widened with it. None when no scan has a
+    doubt to carry."""
+    from fit.influence import offset_response
+
+    doubts = offset_doubts(problem, states)
+    if all(d is None for d in doubts):
+        return None
+    theta = np.asarray(result.map.theta, dtype=float)
+    names, R = offset_response(problem, theta)
+    s = np.array([0.0 if d is None else d for d in doubts])
+    draws = np.array(result.samples, dtype=float, copy=True)
+    b = np.random.default_rng(seed).standard_normal((len(draws), len(s))) * s
+    shift = b @ R                                   # (n_draws, len(names))
+    info = {"applied": True,
+            "offset_sd_mm": {sc.name: d for sc, d in zip(problem.scans, doubts) if d is not None},
+            "response": {n: {sc.name: float(R[k, j]) for k, sc in enumerate(problem.scans) if doubts[k] is not None}
+                         for j, n in enumerate(names)},
+            "widened": {}}
+    lo, hi = problem.bounds.T
+    for j, n in enumerate(names):
+        col = result.param_names.index(n)
+        x = draws[:, col]
+        if np.all(x > 0) and theta[col] > 0:
+            x = x * np.exp(shift[:, j] / theta[col])
+        else:
+            x = x + shift[:, j]
+        # beyond a bound the model has no value; the trust verdict judges bounds by the
+        # posterior's own interval (fit/trust.py)
+        draws[:, col] = np.clip(x, lo[col], hi[col])
+    for n, p in list(result.params.items()):
+        if is_noise(n) or n not in result.param_names:
+            continue
+        q = np.quantile(draws[:, result.param_names.index(n)], [0.16, 0.84, 0.05, 0.95, 0.025, 0.975])
+        new = {lvl: _hull(getattr(p, lvl), q[2 * i:2 * i + 2]) for i, lvl in enumerate(_LEVELS)}
+        if new["ci95"] != [float(v) for v in p.ci95]:
+            info["widened"][n] = {"ci95_posterior": [float(v) for v in p.ci95], "ci95": new["ci95"]}
+        result.params[n] = replace(p, **{k: tuple(v) for k, v in new.items()})
+    if derive is not None and result.derived:
+        result.derived = union_derived(result.derived, derive(draws))
+    result.diagnostics["offset_envelope"] = info
+    return info
+
+
+def offset_line(info: dict | None) -> str | None:
+    """One line for `calib fit`: how far the calibration's doubt widened the intervals (the
+    firmware's own values, pa.*, first; at most three), or None."""
+    if not info or not info.get("applied") or not info.get("widened"):
+        return None
+    sd = ", ".join(f"{v * 1000:.2g} um" for v in info["offset_sd_mm"].values())
+    shown = sorted(info["widened"], key=lambda n: not n.startswith(("pa.", "pa_ve.")))
+    parts = [f"{n} 95 % [{w['ci95_posterior'][0]:.4g}, {w['ci95_posterior'][1]:.4g}] -> "
+             f"[{w['ci95'][0]:.4g}, {w['ci95'][1]:.4g}]" for n, w in
+             ((n, info["widened"][n]) for n in shown[:3])]
+    return (f"width calibration: the widths' common offset is known to +-{sd} (1 sd, `calib measure`'s "
+            f"width reference) and the model has no scan_bias; the intervals carry it: " + "; ".join(parts))

@@ -1,0 +1,114 @@
+"""The width calibration's doubt carried into the intervals (fit/offset_envelope.py) and the
+MAP's response to a common width offset (fit/influence.py offset_response), on a model
+whose answer is known: a constant width, which an offset of every width moves one for one."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fit.data import ScanData
+from fit.influence import influence, offset_response
+from fit.likelihood import JointProblem, NoiseOptions
+from fit.offset_envelope import offset_doubts, widen_offset
+from fit.params import Param
+from fit.result import ParamSummary
+from fit.sampler import fit_map
+from measure.table import WidthTable
+from patterns.manifest import Samples
+
+
+@dataclass
+class _Ctx:
+    n: int
+
+
+class ConstModel:
+    """w = c at every station (mm)."""
+    spec = "const"
+
+    def __init__(self):
+        self.params = [Param("flow.w_mm", "mm", 0.5, 0.1, 1.0)]
+        self.param_names = ["flow.w_mm"]
+
+    def default_theta(self):
+        return np.array([0.5])
+
+    def predict(self, ctx, theta):
+        th = np.atleast_2d(theta)
+        return np.repeat(th[:, :1], ctx.n, axis=1)
+
+
+def _scan(n=400, sd=0.005, seed=0):
+    rng = np.random.default_rng(seed)
+    track = np.repeat([0, 1], n // 2)
+    s = np.tile(0.25 * np.arange(n // 2), 2)
+    y = 0.45 + sd * rng.standard_normal(n)
+    table = WidthTable(track=track, s_mm=s, x_mm=s, y_mm=track * 3.0, t_s=s / 20, width_mm=y,
+                       width_sd_mm=np.full(n, sd), valid=np.ones(n, bool))
+    smp = Samples(track=track, s_mm=s, x_mm=s, y_mm=track * 3.0, t_s=s / 20, nx=np.zeros(n), ny=np.ones(n),
+                  width_nominal_mm=np.full(n, 0.45), height_mm=np.full(n, 0.2))
+    gap = np.where(s == 0, np.inf, 0.25)
+    return ScanData(name="scan", manifest=None, table=table, samples=smp, order=np.arange(n), y_mm=y,
+                    sd_mm=np.full(n, sd), gap_mm=gap, ctx=_Ctx(n))
+
+
+def _problem(sc):
+    return JointProblem([sc], [ConstModel()], NoiseOptions(ar1=False, relative=False))
+
+
+def test_a_constant_width_follows_a_common_offset_one_for_one():
+    """d c / d offset = 1: the vector-whitened response equals the influence matrix's, with
+    the wobble of the default noise model too."""
+    sc = _scan()
+    pb = _problem(sc)
+    m = fit_map(pb)
+    names, R = offset_response(pb, m.theta)
+    assert names == ["flow.w_mm"]
+    assert R[0, 0] == pytest.approx(1.0, rel=1e-6)
+    pb2 = JointProblem([sc], [ConstModel()])
+    m2 = fit_map(pb2)
+    _, R2 = offset_response(pb2, m2.theta)
+    inf = influence(pb2, m2.theta)
+    assert R2[0, 0] == pytest.approx(inf.shift(np.ones(len(sc.order)))["flow.w_mm"], rel=1e-9)
+    assert R2[0, 0] == pytest.approx(1.0, rel=1e-3)
+
+
+def test_the_interval_carries_the_calibrations_offset_doubt():
+    """Posterior sd s_post of c, the calibration knows the offset to s_b (2 um): the widened
+    95 % interval's half-width is 1.96 sqrt(s_post^2 + s_b^2) (a Gaussian convolved with the
+    offset's doubt); the median stays; widths without a calibration, or a model that fits
+    the offset (scan_bias), are not widened."""
+    sc = _scan()
+    pb = _problem(sc)
+    m = fit_map(pb)
+    s_post = math.sqrt(m.cov[0, 0])
+    rng = np.random.default_rng(1)
+    draws = m.theta[0] + s_post * rng.standard_normal((40000, 1))
+    q = np.quantile(draws[:, 0], [0.16, 0.84, 0.05, 0.95, 0.025, 0.975])
+    ps = ParamSummary(name="flow.w_mm", median=float(np.median(draws)), mean=float(draws.mean()), sd=s_post,
+                      ci68=tuple(q[0:2]), ci90=tuple(q[2:4]), ci95=tuple(q[4:6]), map=float(m.theta[0]))
+    res = SimpleNamespace(map=m, samples=draws, param_names=list(pb.param_names), params={"flow.w_mm": ps},
+                          derived={}, diagnostics={})
+    s_b = 0.002
+    states = [{"scan": "scan", "calibration": {"applied": True, "offset_sd_mm": s_b}}]
+    info = widen_offset(pb, res, states, seed=0)
+    lo, hi = res.params["flow.w_mm"].ci95
+    assert (hi - lo) / 2 == pytest.approx(1.96 * math.hypot(s_post, s_b), rel=0.03)
+    assert res.params["flow.w_mm"].median == ps.median
+    assert info["widened"]["flow.w_mm"]["ci95_posterior"] == pytest.approx(list(ps.ci95))
+    assert (hi - lo) / (ps.ci95[1] - ps.ci95[0]) > 2.0          # s_b = 2 um against s_post ~0.25 um
+    assert offset_doubts(pb, [{"scan": "scan", "calibration": {"applied": False}}]) == [None]
+    assert widen_offset(pb, res, [{"scan": "scan", "calibration": None}]) is None
+
+
+def test_a_model_with_scan_bias_carries_the_offset_itself():
+    sc = _scan()
+    pb = SimpleNamespace(param_names=["pa.tau_s", "scan_bias.b0_mm"], scans=[sc])
+    states = [{"scan": "scan", "calibration": {"applied": True, "offset_sd_mm": 0.002}}]
+    assert offset_doubts(pb, states) == [None]
+    pb.param_names = ["pa.tau_s"]
+    assert offset_doubts(pb, states) == [pytest.approx(0.002)]
