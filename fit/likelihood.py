@@ -261,7 +261,7 @@ def pointwise_loglik(resid_mm, sd_mm, sigma_extra_mm, phi=None, student_nu=None,
     phi_short       (n_sets, n) its correlation to the previous sample (needs ``phi``)
     rel_mm          (n_sets, n) the relative wobble's sd at each sample (mm; h^2 = sigma_extra^2 + rel^2), or None
     link            (n,) 1 where the sample's measurement error is linked to the previous
-                    sample's (fit.data.ScanData.meas_link), or None (independent errors)
+                    sample's (:func:`scan_links`), or None (independent errors)
     rho_m           (n_sets, 1) or scalar: the linked errors' correlation (``noise.meas_corr``)
     """
     r = np.atleast_2d(np.asarray(resid_mm, dtype=float))
