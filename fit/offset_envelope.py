@@ -28,7 +28,8 @@ posterior's and the shifted draws', and every derived value's (the firmware numb
 same; medians and firmware lines stay the posterior's. This is the Laplace limit of
 marginalising an offset whose prior the data do not narrow.
 
-Full fits only: `--map-only` writes the MAP's Laplace sds as they are.
+A MAP fit (`--map-only`) gets the same in its Laplace covariance, C + sum_k s_k^2 R_k R_k^T
+(:func:`widen_map_offset`).
 Uncalibrated widths are not widened here: their doubt is the whole apparent-width offset
 (tens of um), and `calib fit` already says to add scan_bias (fit/measurement.py notes).
 """
@@ -107,6 +108,29 @@ def widen_offset(problem, result, states, *, seed: int = 0, derive=None) -> dict
         result.derived = union_derived(result.derived, derive(draws))
     result.diagnostics["offset_envelope"] = info
     return info
+
+
+def widen_map_offset(problem, map_result, states) -> dict | None:
+    """The Laplace form of :func:`widen_offset` for a MAP fit (fit.result.MapResult of
+    ``problem``): its covariance gains sum_k s_k^2 R_k R_k^T over the responding
+    parameters, in place. Returns {"applied", "offset_sd_mm", "sd_before": {name: sd}} or
+    None when no scan has a doubt to carry."""
+    from fit.influence import offset_response
+
+    doubts = offset_doubts(problem, states)
+    if all(d is None for d in doubts):
+        return None
+    names, R = offset_response(problem, np.asarray(map_result.theta, dtype=float))
+    cols = [list(problem.param_names).index(n) for n in names]
+    cov = np.array(map_result.cov, dtype=float, copy=True)
+    before = {n: float(np.sqrt(cov[c, c])) for n, c in zip(names, cols)}
+    for k, d in enumerate(doubts):
+        if d is not None:
+            cov[np.ix_(cols, cols)] += d * d * np.outer(R[k], R[k])
+    map_result.cov = cov
+    return {"applied": True,
+            "offset_sd_mm": {sc.name: d for sc, d in zip(problem.scans, doubts) if d is not None},
+            "sd_before": before}
 
 
 def offset_line(info: dict | None) -> str | None:

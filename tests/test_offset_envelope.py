@@ -112,3 +112,18 @@ def test_a_model_with_scan_bias_carries_the_offset_itself():
     assert offset_doubts(pb, states) == [None]
     pb.param_names = ["pa.tau_s"]
     assert offset_doubts(pb, states) == [pytest.approx(0.002)]
+
+
+def test_a_map_fit_carries_the_doubt_in_its_covariance():
+    """The Laplace form: var(c) grows by s_b^2 (R = 1), and nothing without a calibration."""
+    from fit.offset_envelope import widen_map_offset
+
+    sc = _scan()
+    pb = _problem(sc)
+    m = fit_map(pb)
+    v0 = m.cov[0, 0]
+    assert widen_map_offset(pb, m, [{"scan": "scan", "calibration": {"applied": False}}]) is None
+    assert m.cov[0, 0] == v0
+    info = widen_map_offset(pb, m, [{"scan": "scan", "calibration": {"applied": True, "offset_sd_mm": 0.002}}])
+    assert m.cov[0, 0] == pytest.approx(v0 + 0.002 ** 2, rel=1e-6)
+    assert info["sd_before"]["flow.w_mm"] == pytest.approx(math.sqrt(v0))
