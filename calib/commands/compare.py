@@ -60,7 +60,7 @@ def run(args) -> int:
         models[spec] = build_model(spec, manifest.printer, extra_effects=extra)
     obs = observe(manifest, table)
     comp = compare_models(obs, models, full=not args.fast, seed=args.seed, max_steps=args.steps,
-                          progress=sys.stderr.isatty())
+                          progress=True)
     print(format_table(comp.rows()))
     doc = comp.to_json()
     doc.update({"widths": str(args.widths), "manifest": str(args.manifest),

@@ -48,7 +48,7 @@ def run(args) -> int:
     eff = f" --effects {args.effects}" if args.effects else ""
     d = diagnose(obs, args.model, lambda s: build_model(s, manifest.printer, extra_effects=extra),
                  library, [c.name for c in extra], confirm_top=args.confirm,
-                 seed=args.seed, progress=sys.stderr.isatty(),
+                 seed=args.seed, progress=True,
                  command_prefix=f"calib fit {args.widths} --manifest {args.manifest}", effects_arg=eff)
     doc = d.to_json()
     doc.update({"widths": str(args.widths), "manifest": str(args.manifest),

@@ -72,7 +72,7 @@ def run(args) -> int:
             specs.insert(0, args.model)
         if specs:
             comparison = compare_models(obs, {s: build(s) for s in specs}, full=args.full,
-                                        progress=sys.stderr.isatty())
+                                        progress=True)
             if compare_doc is None:
                 compare_doc = comparison.to_json()
         if args.model:
