@@ -328,6 +328,16 @@ def coarsen_nodes(ctx: "SimContext", trk_node, ds_max_mm: float = COARSE_DS_MM,
     commanded volume is conserved exactly; the deposit maps keep a spatial resolution of
     ``ds_max_mm`` (the planner's own bound). The exact linear step is exact on the merged
     intervals; the nonlinear theta step is second order in dt/tau_loc.
+
+    On the realdata StartStopTestPLA1 (a 39-min third-party print, 482,007 intervals kept
+    as 104,948), against the whole timeline under 32 prior draws (2026-11-28): `pa` and
+    `pa+thermal` 99 % of stations within 0.05 um, `pa+nonlinear` / `+backpressure` /
+    `+kalico_tanh` within 1.1-1.8 um; 5-30 of its 11,427 stations differ by 0.05-0.56 mm
+    in some draw, on or beside the print's pre-pressure draws (1 mm at 1 mm/s, 15-51x
+    over-extruded: nominal widths 12-25 mm), where the flow swings fastest. Merging further
+    where no station is near (10 s before the next measured track, 1 s merges, no guard)
+    kept 72,548 intervals (1.45x faster) but widened the nonlinear forms' 99th percentile
+    to 1.5-2.0 um; not kept.
     """
     dt = np.ascontiguousarray(ctx.dt_s, dtype=float)
     ds = ctx.v_head_mm_s * dt

@@ -31,7 +31,17 @@ marginalising an offset whose prior the data do not narrow.
 A MAP fit (`--map-only`) gets the same in its Laplace covariance, C + sum_k s_k^2 R_k R_k^T
 (:func:`widen_map_offset`).
 Uncalibrated widths are not widened here: their doubt is the whole apparent-width offset
-(tens of um), and `calib fit` already says to add scan_bias (fit/measurement.py notes).
+(tens of um), and `calib fit` already says to add scan_bias (fit/measurement.py notes). The
+response is linear only over a few um, so it could not carry that doubt anyway. Measured
+on the demo's seed-2 scan marked uncalibrated, every width shifted by d, MAP of
+`pa+backpressure+thermal` (2026-11-28): the linear response predicts pa.tau_s -2.8 ms and
+thermal.tau_s -40 s per +10 um; the refits moved them -17.6 ms / -19 s at +10 um, +0.3 ms
+/ +69 s at -10 um, and thermal.tau_s went to 2.8 s at +30 um and to its 300 s bound at -30.
+What guards those fits is the misfit check: chi2_nu_bead 12.6 at +10 um, 11.8 at -30, 47
+at +30 (the full fit at +10: NOT TRUSTWORTHY, "fit pa+backpressure+thermal+scan_bias
+first"); at +-5 um 2.2-3.9; at +-2 um 1.3-1.4, under the check's 2, with pa.tau_s off by
+0.4 % (~9 of its sds) and thermal.tau_s 17.5 / 33 s for 25, the scan_bias caution their
+only warning (MAP fits; the structure check not run).
 """
 from __future__ import annotations
 
