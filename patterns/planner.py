@@ -18,7 +18,10 @@ capped by the cornering model of the profile's firmware:
 
 Extruder-only moves (retract, prime) use the extruder's own limits (max_e_velocity,
 max_e_accel) and stop at both ends, as in Klipper and Marlin. Marlin and RRF also cap
-XY+E moves so that the E axis keeps within its velocity/acceleration limits. Z moves
+XY+E moves so that the E axis keeps within its velocity/acceleration limits. The
+extruder limits junctions too: a change of extrusion rate between two moves is a corner
+for it (Klipper's ``instantaneous_corner_velocity``, RRF's and classic Marlin's E jerk,
+current Marlin's junction deviation over XYZE: ``_extruder_junction_v2``). Z moves
 are capped by max_z_velocity / max_z_accel. Not modelled: Klipper's
 ``minimum_cruise_ratio`` smoothing, Marlin's small-segment arc limit, input shaping.
 
@@ -116,11 +119,19 @@ def plan_moves(moves: Moves, profile: PrinterProfile) -> MovePlan:
     # junction limits (start of move i, joining move i-1)
     jmax2 = np.zeros(n)
     if n > 1:
-        ux, uy, uz = dx / safe_L, dy / safe_L, dz / safe_L
         both = motion[1:] & motion[:-1]
-        dot = ux[1:] * ux[:-1] + uy[1:] * uy[:-1] + uz[1:] * uz[:-1]
+        if p.firmware == "marlin" and p.junction_deviation_mm is not None and p.junction_deviation_with_e:
+            # Marlin 2.1 planner.cpp: a block that moves E takes its unit vector over X, Y,
+            # Z and E together, so a change of extrusion rate is a corner
+            norm = np.where(de != 0, np.sqrt(L3 * L3 + de * de), safe_L)
+            ux, uy, uz, ue = dx / norm, dy / norm, dz / norm, de / norm
+            dot = ux[1:] * ux[:-1] + uy[1:] * uy[:-1] + uz[1:] * uz[:-1] + ue[1:] * ue[:-1]
+        else:
+            ux, uy, uz = dx / safe_L, dy / safe_L, dz / safe_L
+            dot = ux[1:] * ux[:-1] + uy[1:] * uy[:-1] + uz[1:] * uz[:-1]
         cruise2 = np.minimum(vmax[1:], vmax[:-1]) ** 2
         j2 = _junction_v2(p, dot, acc[1:], acc[:-1], L3[1:], L3[:-1])
+        j2 = np.minimum(j2, _extruder_junction_v2(p, np.where(motion, de / safe_L, 0.0)))
         jmax2[1:] = np.where(both, np.minimum(j2, cruise2), 0.0)
 
     start2, end2 = _lookahead(jmax2.tolist(), (2.0 * acc * length).tolist())
@@ -170,7 +181,7 @@ def _junction_v2(p: PrinterProfile, dot, a_cur, a_prev, L_cur, L_prev) -> np.nda
     cos_t2 = np.sqrt(np.maximum(0.5 * (1.0 + cos_theta), 0.0))
     one_minus = 1.0 - sin_t2
     with np.errstate(divide="ignore", invalid="ignore"):
-        if p.firmware == "rrf":
+        if p.firmware == "rrf" or p.junction_deviation_for_planner_mm is None:     # Marlin's classic jerk too
             du = np.sqrt(np.maximum(2.0 - 2.0 * dot, 0.0))
             v = np.where(du > 1e-12, p.max_jerk_mm_s / du, np.inf)
             return v * v
@@ -185,6 +196,31 @@ def _junction_v2(p: PrinterProfile, dot, a_cur, a_prev, L_cur, L_prev) -> np.nda
             v2 = R * jd * a_cur
     # a full reversal has sin(theta/2) = 0, hence R = 0 and v2 = 0: it stops
     return np.nan_to_num(v2, nan=0.0, posinf=np.inf)
+
+
+def _extruder_junction_v2(p: PrinterProfile, ratio) -> np.ndarray:
+    """Max junction speed^2 (mm^2/s^2) from the extruder, per junction of consecutive
+    moves, from ``ratio`` (M,): filament mm per mm of head path of each move (E / L).
+
+    The extruder's own speed jumps at the junction by v |r2 - r1| at head speed v:
+    * Klipper (klippy/kinematics/extruder.py ``calc_junction``): v^2 <= (icv / |r2 - r1|)^2,
+      icv = ``instantaneous_corner_velocity_mm_s`` (Klipper's default 1 mm/s);
+    * RRF (M566 E) and Marlin's classic jerk (M205 E): v <= e_jerk / |r2 - r1| with
+      ``max_e_jerk_mm_s``; across a change of sign (extrude to retract) the jump is the
+      larger speed, v max(|r1|, |r2|) (Marlin planner.cpp), as RRF's per-drive limit;
+    * Marlin's junction deviation takes E into the corner's angle instead (plan_moves).
+    A change of width along a straight line is then a corner: a spiral-step test at 40
+    mm/s on Klipper slows to 1 / 0.042 = 24 mm/s where a 0.5 mm bead doubles (h 0.2 mm)."""
+    r1, r2 = ratio[:-1], ratio[1:]
+    if p.firmware == "klipper":
+        lim, jump = p.instantaneous_corner_velocity_mm_s, np.abs(r2 - r1)
+    elif p.max_e_jerk_mm_s is not None and (p.firmware == "rrf" or p.junction_deviation_mm is None):
+        lim = p.max_e_jerk_mm_s
+        jump = np.where(r1 * r2 >= 0, np.abs(r2 - r1), np.maximum(np.abs(r1), np.abs(r2)))
+    else:
+        return np.full(len(r1), np.inf)
+    with np.errstate(divide="ignore"):
+        return np.where(jump > 0, (lim / np.where(jump > 0, jump, 1.0)) ** 2, np.inf)
 
 
 def _lookahead(jmax2: list, reach2: list) -> tuple[list, list]:

@@ -11,11 +11,17 @@ them. Cornering model per firmware:
 
 * klipper: ``square_corner_velocity_mm_s`` (klippy/toolhead.py; the junction deviation
   is derived as scv^2 (sqrt(2) - 1) / accel).
-* marlin: ``junction_deviation_mm`` (Marlin planner.cpp, same junction formula).
+* marlin: ``junction_deviation_mm`` (Marlin planner.cpp, same junction formula; Marlin
+  2.1 takes E into the unit vectors, so a change of extrusion rate is a corner), or
+  ``max_jerk_mm_s`` for a build with CLASSIC_JERK (then as rrf below).
 * rrf: RepRapFirmware limits the instantaneous speed change at a corner ("jerk", M566).
   We use ``max_jerk_mm_s``: the vector speed change at a junction may not exceed it,
   so v_j = jerk / |u1 - u2| (u = unit direction). RRF's jerk is per axis; using the
   vector norm is a documented approximation.
+
+The extruder limits junctions too (patterns/planner.py ``_extruder_junction_v2``):
+``instantaneous_corner_velocity_mm_s`` (Klipper, default 1 mm/s as Klipper's) and
+``max_e_jerk_mm_s`` (RRF's M566 E, Marlin's classic-jerk M205 E).
 """
 from __future__ import annotations
 
@@ -82,6 +88,16 @@ class PrinterProfile:
     square_corner_velocity_mm_s: float | None = None
     junction_deviation_mm: float | None = None
     max_jerk_mm_s: float | None = None
+    #: The extruder at a junction (patterns/planner.py ``_extruder_junction_v2``): Klipper's
+    #: ``instantaneous_corner_velocity`` (its default 1 mm/s) ...
+    instantaneous_corner_velocity_mm_s: float = 1.0
+    #: Marlin's junction deviation over X, Y, Z and E (current Marlin, 2.1: a block that moves E
+    #: normalises its unit vector with E in it, so a change of extrusion rate is a corner);
+    #: false for older builds and forks, where E's share is too small to matter.
+    junction_deviation_with_e: bool = True
+    #: ... and the E jerk of RRF (M566 E) and of Marlin's classic jerk (M205 E); None: not
+    #: limited (Marlin's junction deviation takes E into the corner's angle instead).
+    max_e_jerk_mm_s: float | None = None
     max_z_velocity_mm_s: float = 10.0
     max_z_accel_mm_s2: float = 100.0
     #: Klipper's minimum_cruise_ratio is not modelled (see planner docstring).
@@ -188,6 +204,8 @@ def profile_from_dict(doc: dict, source: str = "profile") -> PrinterProfile:
     if fw not in FIRMWARES:
         raise UserError(f"{source}: unknown firmware {doc['firmware']!r}; use one of {', '.join(FIRMWARES)}")
     ck = CORNER_KEY[fw]
+    if fw == "marlin" and doc.get(ck) is None and doc.get("max_jerk_mm_s") is not None:
+        ck = "max_jerk_mm_s"            # Marlin built with CLASSIC_JERK (M205 X Y)
     if doc.get(ck) is None:
         raise UserError(f"{source}: missing key {ck!r} (required for firmware {fw})")
 
@@ -207,7 +225,8 @@ def profile_from_dict(doc: dict, source: str = "profile") -> PrinterProfile:
             vals[key] = _number(source, key, doc[key])
     positive = ("max_z_mm", "nozzle_diameter_mm", "nozzle_land_length_mm", "filament_diameter_mm",
                 "max_velocity_mm_s", "max_accel_mm_s2", "max_e_velocity_mm_s", "max_e_accel_mm_s2",
-                "retract_speed_mm_s", "max_z_velocity_mm_s", "max_z_accel_mm_s2", ck)
+                "retract_speed_mm_s", "max_z_velocity_mm_s", "max_z_accel_mm_s2", "instantaneous_corner_velocity_mm_s",
+                "max_e_jerk_mm_s", ck)
     for key in positive:
         if key in vals and not vals[key] > 0:
             raise UserError(f"{source}: {key} must be > 0, got {vals[key]}")
@@ -224,7 +243,7 @@ def profile_from_dict(doc: dict, source: str = "profile") -> PrinterProfile:
             if not isinstance(doc[key], str):
                 raise UserError(f"{source}: {key} must be a string")
             vals[key] = doc[key]
-    for key in ("supports_relative_e", "firmware_pressure_advance"):
+    for key in ("supports_relative_e", "firmware_pressure_advance", "junction_deviation_with_e"):
         if key in doc:
             if not isinstance(doc[key], bool):
                 raise UserError(f"{source}: {key} must be true or false")

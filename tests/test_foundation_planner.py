@@ -90,6 +90,42 @@ def test_marlin_junction_deviation_and_rrf_jerk_corners():
     assert mp.v_end_mm_s[0] == 0.0
 
 
+def test_a_change_of_extrusion_rate_is_a_corner_for_the_extruder():
+    """A straight line whose width steps: the extruder's speed jumps by v |r2 - r1| (r = E
+    per mm of path), which each firmware limits its own way (patterns/planner.py)."""
+    r1, r2 = 0.04, 0.10                              # filament mm per head mm
+    gcode = f"M83\nG1 X50 Y0 E{50 * r1:.4f} F6000\nG1 X100 Y0 E{50 * r2:.4f}\n"
+    # Klipper, klippy/kinematics/extruder.py calc_junction: v = icv / |dr|
+    klipper = _prof("direct_drive", max_accel_mm_s2=3000.0, instantaneous_corner_velocity_mm_s=1.0)
+    mp = plan_moves(parse_gcode(gcode).moves, klipper)
+    assert mp.v_end_mm_s[0] == pytest.approx(1.0 / (r2 - r1), rel=1e-9)     # 16.7 mm/s, not 100
+    assert mp.v_start_mm_s[1] == pytest.approx(1.0 / (r2 - r1), rel=1e-9)
+    # the same line without the step goes straight through at full speed
+    flat = f"M83\nG1 X50 Y0 E{50 * r1:.4f} F6000\nG1 X100 Y0 E{50 * r1:.4f}\n"
+    assert plan_moves(parse_gcode(flat).moves, klipper).v_end_mm_s[0] == pytest.approx(100.0)
+    # RRF (M566 E): v = e_jerk / |dr|; a retracting move across the junction: the larger speed
+    rrf = _prof("long_bowden", max_jerk_mm_s=10.0, max_e_jerk_mm_s=2.0, max_accel_mm_s2=3000.0)
+    assert plan_moves(parse_gcode(gcode).moves, rrf).v_end_mm_s[0] == pytest.approx(2.0 / (r2 - r1), rel=1e-9)
+    wipe = f"M83\nG1 X50 Y0 E{50 * r1:.4f} F6000\nG1 X100 Y0 E-{50 * r2:.4f}\n"
+    assert plan_moves(parse_gcode(wipe).moves, rrf).v_end_mm_s[0] == pytest.approx(2.0 / r2, rel=1e-9)
+    # Marlin 2.1 junction deviation over X, Y, Z and E: the angle between (1, r1) and (1, r3);
+    # a small step is nearly straight (v ~ 300 mm/s), a pre-pressure draw (r3 0.8) is not
+    r3 = 0.8
+    draw = f"M83\nG1 X50 Y0 E{50 * r1:.4f} F6000\nG1 X100 Y0 E{50 * r3:.4f}\n"
+    marlin = _prof("ender3", junction_deviation_mm=0.08, max_accel_mm_s2=500.0, max_e_velocity_mm_s=200.0)
+    cos_theta = -(1 + r1 * r3) / math.sqrt((1 + r1 ** 2) * (1 + r3 ** 2))
+    sin_t2 = math.sqrt(0.5 * (1 - cos_theta))
+    v = math.sqrt(500.0 * 0.08 * sin_t2 / (1 - sin_t2))
+    assert v < 30.0
+    assert plan_moves(parse_gcode(draw).moves, marlin).v_end_mm_s[0] == pytest.approx(v, rel=1e-9)
+    # ... and a Marlin built with classic jerk (M205 X Y E) limits it like RRF
+    d = load_profile("ender3").to_dict()
+    del d["junction_deviation_mm"]
+    d.update(max_jerk_mm_s=10.0, max_e_jerk_mm_s=5.0, max_e_velocity_mm_s=100.0)
+    classic = profile_from_dict(d)
+    assert plan_moves(parse_gcode(gcode).moves, classic).v_end_mm_s[0] == pytest.approx(5.0 / (r2 - r1), rel=1e-9)
+
+
 def test_extruder_only_move_uses_extruder_limits_and_dwell_time():
     prof = _prof("adventurer3", max_e_velocity_mm_s=40.0, max_e_accel_mm_s2=1000.0)
     mp = plan_moves(parse_gcode("M83\nG1 E-2 F6000\nG4 P500\nG4 S1.5\n").moves, prof)
