@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.errors import UserError
 from fit.geometry import bead_area_mm2
 from patterns import font
 from patterns.fiducials import FiducialPlan, corner_origins, plan_fiducial
@@ -354,6 +355,13 @@ class PatternBuilder:
                 manifest_from_gcode = None
             if manifest_from_gcode is not None:
                 manifest = manifest_from_gcode(text, self.profile, pattern=pattern)
+                refused = (manifest.pattern or {}).get("firmware_refusals")
+                if refused:
+                    # a test print the firmware stops half-way is worse than none
+                    line, why = refused[0]
+                    raise UserError(f"{self.name}: Klipper would stop this pattern at G-code line {line} "
+                                    f"({why}); choose narrower widths or a lower layer height, or raise "
+                                    f"the profile's max_extrude_cross_section_mm2 to match printer.cfg")
         if manifest is None:
             manifest = Manifest(printer=self.profile.to_dict(), pattern=pattern,
                                 tracks=self.own_tracks())

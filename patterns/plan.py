@@ -30,7 +30,7 @@ from calib.errors import UserError
 from fit.geometry import bead_width_mm
 from patterns.gcode_parser import ParseResult, parse_gcode
 from patterns.manifest import Manifest, Track
-from patterns.planner import DS_MAX_MM, DT_MAX_S, _plan_with_details, track_ids
+from patterns.planner import DS_MAX_MM, DT_MAX_S, _plan_with_details, klipper_refusals, track_ids
 from patterns.profile import load_profile
 
 #: Unlabelled extrusion runs shorter than this (mm) are kind "other" (text, dots, blobs).
@@ -138,6 +138,14 @@ def manifest_from_parse(pr: ParseResult, profile, pattern: dict | None = None, *
         warnings.append(f"{len(odd)} tracks have commanded widths implausible for a {d:g} mm nozzle "
                         f"({min(ws):.2f}-{max(ws):.2f} mm at heights {min(hs):.3f}-{max(hs):.3f} mm): "
                         f"{_id_ranges([o[0] for o in odd])}; check the layer height (--layer-height)")
+    refused = klipper_refusals(mv, prof)
+    if refused:
+        line, why = refused[0]
+        more = f" ({len(refused) - 1} more moves like it)" if len(refused) > 1 else ""
+        warnings.append(f"Klipper would stop this print at G-code line {line}: {why}{more}; its [extruder] "
+                        f"max_extrude_cross_section / max_extrude_only_distance (the profile's "
+                        f"max_extrude_cross_section_mm2 / max_extrude_only_distance_mm) allow less")
+        pat["firmware_refusals"] = [[ln, w] for ln, w in refused]
     if warnings:
         pat.setdefault("warnings", warnings)
     if pr.pa_events:

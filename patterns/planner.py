@@ -160,6 +160,36 @@ def plan_moves(moves: Moves, profile: PrinterProfile) -> MovePlan:
                     t_start_s=t_start, kind=kind)
 
 
+def klipper_refusals(moves: Moves, profile: PrinterProfile) -> list[tuple[int, str]]:
+    """(G-code line, Klipper's error) for every move Klipper's extruder refuses, which stops
+    the print there (klippy/kinematics/extruder.py ``check_move``): an XY move extruding
+    more than ``max_extrude_cross_section`` (default 4 d^2 mm^2) per mm of path, unless it
+    extrudes no more than d times that ratio in all; an extrude-only (or retracting) move
+    longer than ``max_extrude_only_distance`` (default 50 mm). Empty for other firmware."""
+    p = load_profile(profile)
+    if p.firmware != "klipper" or len(moves) == 0:
+        return []
+    area = p.max_extrude_cross_section_mm2
+    if area is None:
+        area = 4.0 * p.nozzle_diameter_mm ** 2
+    max_r = area / p.filament_area_mm2
+    dxy = np.hypot(moves.x_mm - moves.x0_mm, moves.y_mm - moves.y0_mm)
+    L3 = moves.xyz_length_mm
+    de = moves.de_mm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(L3 > _EPS_MM, de / np.where(L3 > _EPS_MM, L3, 1.0), np.sign(de) * np.inf)
+    e_only = (de != 0) & ((dxy <= 0) | (r < 0)) & (moves.dwell_s <= 0)
+    out = []
+    for i in np.flatnonzero(e_only & (np.abs(de) > p.max_extrude_only_distance_mm)):
+        out.append((int(moves.line[i]), f"Extrude only move too long ({de[i]:.3f}mm vs "
+                                        f"{p.max_extrude_only_distance_mm:.3f}mm)"))
+    over = ~e_only & (dxy > 0) & (r > max_r) & (de > p.nozzle_diameter_mm * max_r)
+    for i in np.flatnonzero(over):
+        out.append((int(moves.line[i]), f"Move exceeds maximum extrusion ({r[i] * p.filament_area_mm2:.3f}mm^2 "
+                                        f"vs {area:.3f}mm^2)"))
+    return sorted(out)
+
+
 def junction_speed_klipper_mm_s(angle_deg: float, scv_mm_s: float, accel_mm_s2: float) -> float:
     """Klipper's junction speed (mm/s) for a change of direction of ``angle_deg``
     (0 = straight on, 90 = square corner, 180 = reversal), ignoring the centripetal cap.

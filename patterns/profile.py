@@ -48,7 +48,7 @@ REQUIRED_KEYS = (
 CORNER_KEY = {"klipper": "square_corner_velocity_mm_s", "marlin": "junction_deviation_mm",
               "rrf": "max_jerk_mm_s"}
 
-_UNIT_SUFFIXES = ("_mm", "_mm_s", "_mm_s2", "_c", "_s")
+_UNIT_SUFFIXES = ("_mm", "_mm_s", "_mm_s2", "_mm2", "_c", "_s")
 _FOREIGN_UNIT = re.compile(r"_(in|inch|inches|cm|m|um|mm_min|in_s|f|k|deg_f|ms)$")
 
 
@@ -98,6 +98,11 @@ class PrinterProfile:
     #: ... and the E jerk of RRF (M566 E) and of Marlin's classic jerk (M205 E); None: not
     #: limited (Marlin's junction deviation takes E into the corner's angle instead).
     max_e_jerk_mm_s: float | None = None
+    #: Klipper's [extruder] limits whose breach stops the print with an error
+    #: (klippy/kinematics/extruder.py ``check_move``): the bead cross-section of an XY move
+    #: (None: Klipper's default 4 d^2) and the length of an extrude-only move.
+    max_extrude_cross_section_mm2: float | None = None
+    max_extrude_only_distance_mm: float = 50.0
     max_z_velocity_mm_s: float = 10.0
     max_z_accel_mm_s2: float = 100.0
     #: Klipper's minimum_cruise_ratio is not modelled (see planner docstring).
@@ -226,7 +231,7 @@ def profile_from_dict(doc: dict, source: str = "profile") -> PrinterProfile:
     positive = ("max_z_mm", "nozzle_diameter_mm", "nozzle_land_length_mm", "filament_diameter_mm",
                 "max_velocity_mm_s", "max_accel_mm_s2", "max_e_velocity_mm_s", "max_e_accel_mm_s2",
                 "retract_speed_mm_s", "max_z_velocity_mm_s", "max_z_accel_mm_s2", "instantaneous_corner_velocity_mm_s",
-                "max_e_jerk_mm_s", ck)
+                "max_e_jerk_mm_s", "max_extrude_cross_section_mm2", "max_extrude_only_distance_mm", ck)
     for key in positive:
         if key in vals and not vals[key] > 0:
             raise UserError(f"{source}: {key} must be > 0, got {vals[key]}")

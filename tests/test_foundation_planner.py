@@ -126,6 +126,30 @@ def test_a_change_of_extrusion_rate_is_a_corner_for_the_extruder():
     assert plan_moves(parse_gcode(gcode).moves, classic).v_end_mm_s[0] == pytest.approx(5.0 / (r2 - r1), rel=1e-9)
 
 
+def test_moves_klipper_refuses_are_found_with_their_line():
+    """klippy/kinematics/extruder.py check_move: an XY move over max_extrude_cross_section
+    (default 4 d^2 = 0.64 mm^2 for 0.4 mm) stops the print, unless it extrudes no more than
+    d times the ratio; an extrude-only move over max_extrude_only_distance (50 mm) too."""
+    from patterns.planner import klipper_refusals
+    klipper = _prof("direct_drive")
+    af = klipper.filament_area_mm2
+    ratio = 0.64 / af                                  # filament mm per mm at the limit
+    text = ("M83\nG1 X10 Y0 F3000\n"
+            f"G1 X20 Y0 E{10 * 0.5 / af:.5f}\n"           # line 3: 0.5 mm^2, fine
+            f"G1 X30 Y0 E{10 * 1.0 / af:.5f}\n"           # line 4: 1.0 mm^2: refused
+            f"G1 X30.1 Y0 E{0.9 * 0.4 * ratio:.5f}\n"     # line 5: over the ratio but tiny: permitted
+            "G1 E60 F300\n"                                # line 6: a 60 mm extrude-only move
+            "G1 E-5\n")                                    # line 7: a retraction, fine
+    got = klipper_refusals(parse_gcode(text, klipper).moves, klipper)
+    assert [ln for ln, _ in got] == [4, 6]
+    assert got[0][1] == "Move exceeds maximum extrusion (1.000mm^2 vs 0.640mm^2)"
+    assert got[1][1] == "Extrude only move too long (60.000mm vs 50.000mm)"
+    wider = _prof("direct_drive", max_extrude_cross_section_mm2=1.2, max_extrude_only_distance_mm=100.0)
+    assert klipper_refusals(parse_gcode(text, wider).moves, wider) == []
+    marlin = _prof("ender3")
+    assert klipper_refusals(parse_gcode(text, marlin).moves, marlin) == []
+
+
 def test_extruder_only_move_uses_extruder_limits_and_dwell_time():
     prof = _prof("adventurer3", max_e_velocity_mm_s=40.0, max_e_accel_mm_s2=1000.0)
     mp = plan_moves(parse_gcode("M83\nG1 E-2 F6000\nG4 P500\nG4 S1.5\n").moves, prof)
