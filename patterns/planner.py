@@ -18,7 +18,8 @@ capped by the cornering model of the profile's firmware:
 
 Extruder-only moves (retract, prime) use the extruder's own limits (max_e_velocity,
 max_e_accel) and stop at both ends, as in Klipper and Marlin. Marlin and RRF also cap
-XY+E moves so that the E axis keeps within its velocity/acceleration limits. The
+XY+E moves so that the E axis keeps within its velocity/acceleration limits, Klipper only
+the XY moves that retract (a wipe). The
 extruder limits junctions too: a change of extrusion rate between two moves is a corner
 for it (Klipper's ``instantaneous_corner_velocity``, RRF's and classic Marlin's E jerk,
 current Marlin's junction deviation over XYZE: ``_extruder_junction_v2``). Z moves
@@ -108,10 +109,12 @@ def plan_moves(moves: Moves, profile: PrinterProfile) -> MovePlan:
     with np.errstate(divide="ignore", invalid="ignore"):
         vmax = np.where(motion & (zr > 0), np.minimum(vmax, p.max_z_velocity_mm_s / zr), vmax)
         acc = np.where(motion & (zr > 0), np.minimum(acc, p.max_z_accel_mm_s2 / zr), acc)
-        if p.firmware in ("marlin", "rrf"):
-            er = np.abs(de) / safe_L
-            vmax = np.where(motion & (er > 0), np.minimum(vmax, p.max_e_velocity_mm_s / er), vmax)
-            acc = np.where(motion & (er > 0), np.minimum(acc, p.max_e_accel_mm_s2 / er), acc)
+        er = np.abs(de) / safe_L
+        # Marlin and RRF cap every XY+E move; Klipper only the retracting ones (a wipe while
+        # retracting: klippy/kinematics/extruder.py check_move, "axis_r < 0")
+        capped = motion & (er > 0) & ((de < 0) if p.firmware == "klipper" else True)
+        vmax = np.where(capped, np.minimum(vmax, p.max_e_velocity_mm_s / er), vmax)
+        acc = np.where(capped, np.minimum(acc, p.max_e_accel_mm_s2 / er), acc)
     vmax = np.where(eonly, np.minimum(moves.feed_mm_s, p.max_e_velocity_mm_s), vmax)
     acc = np.where(eonly, p.max_e_accel_mm_s2, acc)
     vmax = np.where(dwell | ~(motion | eonly), 0.0, vmax)

@@ -163,6 +163,10 @@ def test_marlin_caps_xy_speed_by_extruder_speed():
     prof = _prof("ender3", max_e_velocity_mm_s=1.0)
     mp = plan_moves(parse_gcode("M83\nG1 X100 E10 F6000\n").moves, prof)
     assert mp.v_cruise_mm_s[0] == pytest.approx(10.0)     # E at 1 mm/s -> head 10 mm/s
+    # Klipper caps only a move that retracts while it travels (a wipe), not one that extrudes
+    klipper = _prof("direct_drive", max_e_velocity_mm_s=1.0)
+    assert plan_moves(parse_gcode("M83\nG1 X100 E10 F6000\n").moves, klipper).v_cruise_mm_s[0] == pytest.approx(100.0)
+    assert plan_moves(parse_gcode("M83\nG1 X100 E-10 F6000\n").moves, klipper).v_cruise_mm_s[0] == pytest.approx(10.0)
 
 
 def test_timeline_sampling_and_commanded_volume_is_conserved():
