@@ -19,11 +19,11 @@ capped by the cornering model of the profile's firmware:
 Extruder-only moves (retract, prime) use the extruder's own limits (max_e_velocity,
 max_e_accel) and stop at both ends, as in Klipper and Marlin. Marlin and RRF also cap
 XY+E moves so that the E axis keeps within its velocity/acceleration limits, Klipper only
-the XY moves that retract (a wipe). The
-extruder limits junctions too: a change of extrusion rate between two moves is a corner
-for it (Klipper's ``instantaneous_corner_velocity``, RRF's and classic Marlin's E jerk,
-current Marlin's junction deviation over XYZE: ``_extruder_junction_v2``). Z moves
-are capped by max_z_velocity / max_z_accel. Not modelled: Klipper's
+the XY moves that retract (a wipe). The extruder limits junctions too: a change of
+extrusion rate between two moves is a corner for it (Klipper's
+``instantaneous_corner_velocity``, RRF's and classic Marlin's E jerk, current Marlin's
+junction deviation over XYZE: ``_extruder_junction_v2``). Z moves are capped by
+max_z_velocity / max_z_accel. Not modelled: Klipper's
 ``minimum_cruise_ratio`` smoothing, Marlin's small-segment arc limit, input shaping.
 
 The Timeline (patterns/manifest.py) is sampled every <= 0.25 mm of head travel and

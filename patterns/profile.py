@@ -88,13 +88,13 @@ class PrinterProfile:
     square_corner_velocity_mm_s: float | None = None
     junction_deviation_mm: float | None = None
     max_jerk_mm_s: float | None = None
-    #: The extruder at a junction (patterns/planner.py ``_extruder_junction_v2``): Klipper's
-    #: ``instantaneous_corner_velocity`` (its default 1 mm/s) ...
-    instantaneous_corner_velocity_mm_s: float = 1.0
     #: Marlin's junction deviation over X, Y, Z and E (current Marlin, 2.1: a block that moves E
     #: normalises its unit vector with E in it, so a change of extrusion rate is a corner);
     #: false for older builds and forks, where E's share is too small to matter.
     junction_deviation_with_e: bool = True
+    #: The extruder at a junction (patterns/planner.py ``_extruder_junction_v2``): Klipper's
+    #: ``instantaneous_corner_velocity`` (its default 1 mm/s) ...
+    instantaneous_corner_velocity_mm_s: float = 1.0
     #: ... and the E jerk of RRF (M566 E) and of Marlin's classic jerk (M205 E); None: not
     #: limited (Marlin's junction deviation takes E into the corner's angle instead).
     max_e_jerk_mm_s: float | None = None
