@@ -231,6 +231,17 @@ def _junction_v2(p: PrinterProfile, dot, a_cur, a_prev, L_cur, L_prev) -> np.nda
     return np.nan_to_num(v2, nan=0.0, posinf=np.inf)
 
 
+def extruder_junction_limit_mm_s(profile) -> float | None:
+    """The extruder speed change (mm/s of filament) the firmware allows at a junction
+    without slowing the head (``_extruder_junction_v2``), or None where it sets none."""
+    p = load_profile(profile)
+    if p.firmware == "klipper":
+        return p.instantaneous_corner_velocity_mm_s
+    if p.max_e_jerk_mm_s is not None and (p.firmware == "rrf" or p.junction_deviation_mm is None):
+        return p.max_e_jerk_mm_s
+    return None
+
+
 def _extruder_junction_v2(p: PrinterProfile, ratio) -> np.ndarray:
     """Max junction speed^2 (mm^2/s^2) from the extruder, per junction of consecutive
     moves, from ``ratio`` (M,): filament mm per mm of head path of each move (E / L).
@@ -245,13 +256,13 @@ def _extruder_junction_v2(p: PrinterProfile, ratio) -> np.ndarray:
     A change of width along a straight line is then a corner: a spiral-step test at 40
     mm/s on Klipper slows to 1 / 0.042 = 24 mm/s where a 0.5 mm bead doubles (h 0.2 mm)."""
     r1, r2 = ratio[:-1], ratio[1:]
-    if p.firmware == "klipper":
-        lim, jump = p.instantaneous_corner_velocity_mm_s, np.abs(r2 - r1)
-    elif p.max_e_jerk_mm_s is not None and (p.firmware == "rrf" or p.junction_deviation_mm is None):
-        lim = p.max_e_jerk_mm_s
-        jump = np.where(r1 * r2 >= 0, np.abs(r2 - r1), np.maximum(np.abs(r1), np.abs(r2)))
-    else:
+    lim = extruder_junction_limit_mm_s(p)
+    if lim is None:
         return np.full(len(r1), np.inf)
+    if p.firmware == "klipper":
+        jump = np.abs(r2 - r1)
+    else:
+        jump = np.where(r1 * r2 >= 0, np.abs(r2 - r1), np.maximum(np.abs(r1), np.abs(r2)))
     with np.errstate(divide="ignore"):
         return np.where(jump > 0, (lim / np.where(jump > 0, jump, 1.0)) ** 2, np.inf)
 

@@ -12,7 +12,7 @@ from calib.errors import UserError
 from patterns import font, layout
 from patterns.builder import PATTERNS
 from patterns.plan import manifest_from_gcode
-from patterns.profile import load_profile
+from patterns.profile import load_profile, profile_from_dict
 from patterns.stop_mid_path import exp_feed_ramp
 
 PROFILES = ("adventurer3", "long_bowden", "direct_drive")
@@ -100,6 +100,35 @@ def test_spiral_steps_not_synchronised_with_angle():
         # The width really steps at those boundaries (commanded widths at both levels).
         w = tr.interp("width_mm", np.asarray(p["step_boundaries_mm"]) + 1.0)
         assert set(np.round(w, 3)) == set(np.round(p["widths_mm"], 3))
+
+
+def test_spiral_steps_keep_the_head_speed_on_klipper():
+    """A width step is a corner for Klipper's extruder (instantaneous_corner_velocity 1 mm/s):
+    taken at once, 0.8 -> 0.35 mm at 40 mm/s slowed the head to 27 mm/s. The pattern takes it
+    in sub-steps of at most 0.9 mm/s of extruder speed each, 0.05 mm apart: the head keeps
+    40 mm/s through every step, and the width still steps within 0.15 mm."""
+    from patterns import spiral_step
+    from patterns.gcode_parser import parse_gcode
+    from patterns.planner import plan_moves
+
+    prof = load_profile("direct_drive")
+    text, man = spiral_step.generate(prof, speeds_mm_s=(40.0,), n_steps=4, step_s=(2.0,),
+                                     widths_mm=(0.35, 0.8))[:2]
+    mv = parse_gcode(text, prof).moves
+    mp = plan_moves(mv, prof)
+    (tr,) = [t for t in man.tracks if t.kind == "test"]
+    on = np.flatnonzero(mv.track == tr.id)
+    r = mv.de_mm[on] / mv.xyz_length_mm[on]
+    jumps = np.abs(np.diff(r)) * 40.0
+    assert jumps.max() <= 0.9 + 1e-9 and (jumps > 0.5).sum() >= 3 * 2     # 3 steps, >= 2 sub-steps each
+    # planned as if the extruder set no limit: the same speeds everywhere (the spiral's own
+    # curvature slows its inner turns a little, 37 mm/s, either way)
+    free = profile_from_dict({**prof.to_dict(), "instantaneous_corner_velocity_mm_s": 1e6})
+    np.testing.assert_allclose(mp.v_start_mm_s[on], plan_moves(mv, free).v_start_mm_s[on], rtol=1e-12)
+    # the width still steps: every move at a rate between the two levels is a 0.05 mm sub-step
+    lo, hi = r.min(), r.max()
+    between = (r > lo * 1.02) & (r < hi * 0.98)        # E is written to 5 decimals
+    assert between.sum() >= 3 and np.all(mv.xyz_length_mm[on][between] <= 0.051)     # XY to 3 decimals
 
 
 def test_stop_mid_path_feed_follows_exponential():
