@@ -253,8 +253,9 @@ def _extruder_junction_v2(p: PrinterProfile, ratio) -> np.ndarray:
       ``max_e_jerk_mm_s``; across a change of sign (extrude to retract) the jump is the
       larger speed, v max(|r1|, |r2|) (Marlin planner.cpp), as RRF's per-drive limit;
     * Marlin's junction deviation takes E into the corner's angle instead (plan_moves).
-    A change of width along a straight line is then a corner: a spiral-step test at 40
-    mm/s on Klipper slows to 1 / 0.042 = 24 mm/s where a 0.5 mm bead doubles (h 0.2 mm)."""
+    A change of width along a straight line is then a corner: a line at 40 mm/s on Klipper
+    slows to 1 / 0.042 = 24 mm/s where a 0.5 mm bead doubles (h 0.2 mm); the spiral-step
+    pattern takes its steps in sub-steps to keep its speed (patterns/spiral_step.py)."""
     r1, r2 = ratio[:-1], ratio[1:]
     lim = extruder_junction_limit_mm_s(p)
     if lim is None:
