@@ -27,7 +27,7 @@ from numba import njit
 
 from calib.errors import UserError
 from fit.geometry import filament_area_mm2
-from patterns.manifest import Manifest, Samples, Timeline, sample_points
+from patterns.manifest import Manifest, Samples, Timeline, sample_points, samples_at
 
 #: Physics timeline coarsening (:func:`coarsen_nodes`): a merged interval lays at most
 #: COARSE_DS_MM of bead (one nozzle diameter, the station window; the deposit inside an
@@ -116,6 +116,10 @@ class SimContext:
     physics: "SimContext | None" = field(default=None, repr=False)
     #: On a coarsened context: index of each node in the full timeline.
     node_index: np.ndarray | None = field(default=None, repr=False)
+    #: On :attr:`physics` when the widths came from the measurement: its along-track kernel
+    #: (fit/observe.py); the stations are then its sub-stations, and ``Model.predict`` reads
+    #: the widths through it. None: the stations are the table's, widths as laid.
+    obs: "object | None" = field(default=None, repr=False)
 
     @property
     def n_t(self) -> int:
@@ -124,6 +128,14 @@ class SimContext:
     @property
     def n_samples(self) -> int:
         return len(self.s_mm)
+
+    @property
+    def station_printed(self) -> np.ndarray:
+        """(n_stations,) ``printed`` per station of the widths table: on a context of
+        sub-stations (:attr:`obs`), its station's centre sub-station's."""
+        if self.obs is None:
+            return self.printed
+        return np.asarray(self.printed).reshape(-1, self.obs.lines)[:, self.obs.lines // 2]
 
     @property
     def deposit_map(self) -> tuple:
@@ -148,7 +160,8 @@ class SimContext:
         return dm
 
     @classmethod
-    def build(cls, manifest, samples=None, profile=None, coarsen: bool = True) -> "SimContext":
+    def build(cls, manifest, samples=None, profile=None, coarsen: bool = True,
+              observe=None) -> "SimContext":
         """Precompute from a :class:`Manifest` (with timeline) and stations.
 
         ``samples``: a :class:`patterns.manifest.Samples`, a :class:`measure.table.WidthTable`
@@ -156,6 +169,9 @@ class SimContext:
         PrinterProfile or dict with filament_diameter_mm and nozzle_diameter_mm (default:
         ``manifest.printer``). ``coarsen``: also build :attr:`physics`, the context on the
         coarsened timeline that ``predict`` integrates (see :func:`coarsen_nodes`).
+        ``observe``: the measurement's kernel (fit/observe.py :class:`Observation`, one per
+        station of ``samples``): :attr:`physics` is then built on its sub-stations (always,
+        on the whole timeline where coarsening would not pay) and ``predict`` reads through it.
         """
         if isinstance(manifest, Timeline):
             manifest = Manifest(printer={}, pattern={}, tracks=[], timeline=manifest)
@@ -237,13 +253,26 @@ class SimContext:
             firmware_smooth_time_s=_pget("firmware_smooth_time_s", "pressure_advance_smooth_time_s",
                                          "smooth_time_s"),
         )
+        keep = None
         if coarsen:
             keep = coarsen_nodes(ctx, trk)
             keep = keep[:np.searchsorted(keep, last_needed_node(ctx)) + 1]
-            if len(keep) < 0.9 * len(t):
-                sub = replace(manifest, timeline=tl.slice(keep))
-                ctx.physics = cls.build(sub, samples, profile, coarsen=False)
-                ctx.physics.node_index = keep
+            if len(keep) >= 0.9 * len(t):
+                keep = None
+        if keep is not None or observe is not None:
+            sub = manifest if keep is None else replace(manifest, timeline=tl.slice(keep))
+            phys_samples = samples
+            if observe is not None:
+                if observe.n_stations != len(st["track"]):
+                    raise ValueError(f"observation for {observe.n_stations} stations, context has {len(st['track'])}")
+                trk_sub, s_sub = observe.substations(st["track"], st["s_mm"])
+                # the measurement's lines stop at the track's ends (measure/widths.py)
+                length = {tid: tr.length_mm for tid, tr in track_of.items()}
+                s_sub = np.clip(s_sub, 0.0, np.array([length.get(int(k), np.inf) for k in trk_sub]))
+                phys_samples = samples_at(manifest, trk_sub, s_sub)
+            ctx.physics = cls.build(sub, phys_samples, profile, coarsen=False)
+            ctx.physics.node_index = np.arange(len(t)) if keep is None else keep
+            ctx.physics.obs = observe
         return ctx
 
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from calib.errors import UserError
 from measure.table import WidthTable
-from patterns.manifest import Manifest, Samples
+from patterns.manifest import Manifest, Samples, samples_at
 
 #: Largest allowed distance (mm) between a station's x/y in the widths file and the
 #: manifest's track at the same arc length (the registration error is ~0.01 mm; a wrong
@@ -137,16 +137,9 @@ def samples_for_table(table: WidthTable, manifest: Manifest, name: str = "widths
     if unknown:
         raise UserError(f"{name}: track id(s) {', '.join(map(str, unknown[:5]))} are not in the "
                         "manifest; pair each widths file with the manifest it was measured against")
-    n = len(table)
-    cols = {k: np.full(n, np.nan) for k in ("x_mm", "y_mm", "t_s", "nx", "ny",
-                                             "width_nominal_mm", "height_mm")}
-    tl = manifest.timeline
-    if tl is None:
+    if manifest.timeline is None:
         raise UserError(f"{name}: the manifest has no timeline (.timeline.npz); the fit needs it, "
                         "regenerate the pattern with `calib pattern`")
-    from patterns.manifest import _first_passage_time
-
-    worst = 0.0
     for tid in np.unique(table.track):
         tr = ids[int(tid)]
         rows = np.flatnonzero(table.track == tid)
@@ -154,22 +147,14 @@ def samples_for_table(table: WidthTable, manifest: Manifest, name: str = "widths
         if np.any(s < -0.5) or np.any(s > tr.length_mm + 0.5):
             raise UserError(f"{name}: track {tid} has stations at s up to {s.max():.1f} mm but the "
                             f"manifest's track is {tr.length_mm:.1f} mm long; wrong manifest?")
-        pos, tan = tr.at(np.clip(s, 0, tr.length_mm))
+        pos, _ = tr.at(np.clip(s, 0, tr.length_mm))
         d = np.hypot(pos[:, 0] - table.x_mm[rows], pos[:, 1] - table.y_mm[rows])
         d = d[np.isfinite(d)]
-        if d.size:
-            worst = max(worst, float(np.median(d)))
-            if np.median(d) > POS_TOL_MM:
-                raise UserError(f"{name}: track {tid} stations are {np.median(d):.1f} mm (median) away "
-                                "from the manifest's track; the widths were measured against a "
-                                "different manifest")
-        on = tl.track == tr.id
-        cols["t_s"][rows] = _first_passage_time(tl.s_mm[on], tl.t_s[on], s)
-        cols["x_mm"][rows], cols["y_mm"][rows] = pos[:, 0], pos[:, 1]
-        cols["nx"][rows], cols["ny"][rows] = -tan[:, 1], tan[:, 0]
-        cols["width_nominal_mm"][rows] = tr.interp("width_mm", s)
-        cols["height_mm"][rows] = tr.interp("height_mm", s)
-    return Samples(track=table.track.copy(), s_mm=table.s_mm.copy(), **cols)
+        if d.size and np.median(d) > POS_TOL_MM:
+            raise UserError(f"{name}: track {tid} stations are {np.median(d):.1f} mm (median) away "
+                            "from the manifest's track; the widths were measured against a "
+                            "different manifest")
+    return samples_at(manifest, table.track, table.s_mm)
 
 
 def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
@@ -195,13 +180,17 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
     corr_prev = linked_corr(table, idx, new)
     if ctx is None and build_ctx:
         from fit.context import SimContext
-        ctx = SimContext.build(manifest, samples)
+        from fit.observe import observation_of
+        ctx = SimContext.build(manifest, samples, observe=observation_of(table))
     # the measurement's blur per station (fit/effects.py ViewBlur), on the context and on
-    # the coarsened one that predicts the widths
+    # the coarsened one that predicts the widths (not on one of sub-stations, fit/observe.py:
+    # the width stages act on the widths as read, at the context's own stations)
     for c in (ctx, getattr(ctx, "physics", None)):
-        if c is not None and hasattr(c, "s_blur_mm"):
+        if c is None or getattr(c, "obs", None) is not None:
+            continue
+        if hasattr(c, "s_blur_mm"):
             c.s_blur_mm = np.asarray(table.blur_mm, dtype=float)
-        if c is not None and hasattr(c, "s_light_deg"):
+        if hasattr(c, "s_light_deg"):
             c.s_light_deg = np.asarray(table.light_angle_deg, dtype=float)
     return ScanData(name=name, manifest=manifest, table=table, samples=samples, order=idx,
                     y_mm=table.width_mm[idx].copy(), sd_mm=sd[idx].copy(),

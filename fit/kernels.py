@@ -561,10 +561,101 @@ def _spread_rows(w, order, s, starts, sig, out):
                 out[i, ik] = acc / tot
 
 
+@njit(cache=True)
+def _flat_filter(a, k, take_max):
+    """Grey erosion (take_max False) or dilation of the 1-D ``a`` with a flat element of
+    ``k`` samples, window [j - k//2, j + (k-1)//2] clipped to ``a`` (ends continued by
+    their own values)."""
+    n = len(a)
+    out = np.empty(n)
+    for j in range(n):
+        lo, hi = max(j - k // 2, 0), min(j + (k - 1) // 2, n - 1)
+        v = a[lo]
+        for q in range(lo + 1, hi + 1):
+            if (a[q] > v) if take_max else (a[q] < v):
+                v = a[q]
+        out[j] = v
+    return out
+
+
+def _observe_rows(w, lines, rows, keep, k, eps, out):
+    """fit/observe.py's measurement kernel: the laid widths w (n_sets, n * lines) at the
+    sub-stations (station-major) read as the stations' widths out (n_sets, n) mm.
+
+    Per set: a NaN sub-station takes its station's centre (``lines // 2``); the sequence
+    w[rows] (the padded despeckled runs, concatenated; NaN read as 0) is replaced at the
+    entries ``keep`` by the mean of its open-close and close-open (flat element ``k``
+    samples); each station is the mean of its sub-stations, NaN where its centre is.
+    Only the places j whose reach [j - R, j + R], R = 4 (k // 2), holds a turn of the
+    sequence (a rise and a fall by more than ``eps`` mm, in either order) are filtered: the
+    four filters reach R samples, and all of them leave a sequence that is monotone over
+    [j - R, j + R] as it is at j, so the rest is exact as it stands."""
+    n_sets = w.shape[0]
+    n = out.shape[1]
+    T = len(rows)
+    R = 4 * (k // 2)
+    for i in prange(n_sets):
+        buf = np.empty(n * lines)
+        for st in range(n):
+            c = w[i, st * lines + lines // 2]
+            for q in range(st * lines, (st + 1) * lines):
+                v = w[i, q]
+                buf[q] = v if v == v else c
+        seq = np.empty(T)
+        for j in range(T):
+            v = buf[rows[j]]
+            seq[j] = v if v == v else 0.0
+        mark = np.zeros(T, np.bool_)
+        last_sign = 0
+        last_j = 0
+        for j in range(1, T):
+            d = seq[j] - seq[j - 1]
+            sg = 1 if d > eps else (-1 if d < -eps else 0)
+            if sg != 0:
+                # a rise at last_j and a fall at j (or the reverse), nothing between: the
+                # places whose reach holds both
+                if last_sign != 0 and sg != last_sign:
+                    for q in range(max(j - R, 0), min(last_j - 1 + R, T - 1) + 1):
+                        mark[q] = True
+                last_sign = sg
+                last_j = j
+        j = 0
+        while j < T:
+            if not mark[j]:
+                j += 1
+                continue
+            a = j
+            while j < T and mark[j]:
+                j += 1
+            n_keep = 0
+            for q in range(a, j):
+                n_keep += keep[q]
+            if n_keep == 0:
+                continue
+            sa, sb = max(a - R, 0), min(j + R, T)
+            seg = seq[sa:sb]
+            op = _flat_filter(_flat_filter(seg, k, False), k, True)
+            cl = _flat_filter(_flat_filter(seg, k, True), k, False)
+            oc = _flat_filter(_flat_filter(op, k, True), k, False)
+            co = _flat_filter(_flat_filter(cl, k, False), k, True)
+            for q in range(a, j):
+                if keep[q] and buf[rows[q]] == buf[rows[q]]:
+                    buf[rows[q]] = 0.5 * (oc[q - sa] + co[q - sa])
+        for st in range(n):
+            c = buf[st * lines + lines // 2]
+            if c != c:
+                out[i, st] = np.nan
+                continue
+            acc = 0.0
+            for q in range(st * lines, (st + 1) * lines):
+                acc += buf[q]
+            out[i, st] = acc / lines
+
+
 # Each kernel twice: serial (one or a few parameter sets: no thread start-up cost) and
 # parallel over parameter sets (prange; emcee ensembles, 64+ sets).
 _PY = {"nozzle": nozzle_kernel, "predict": predict_kernel, "deposit": deposit_kernel,
-       "bead_width": bead_width_kernel, "spread": _spread_rows}
+       "bead_width": bead_width_kernel, "spread": _spread_rows, "observe": _observe_rows}
 
 
 def _renamed(f, suffix: str):

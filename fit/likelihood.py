@@ -514,7 +514,7 @@ def censored_rows(scan) -> np.ndarray:
     which ``predict`` integrates)."""
     idx = np.asarray(getattr(scan, "missing_idx", ()), dtype=np.int64)
     for c in (scan.ctx, getattr(scan.ctx, "physics", None)):
-        printed = getattr(c, "printed", None)
+        printed = getattr(c, "station_printed", None)
         if printed is not None and len(idx):
             idx = idx[np.asarray(printed, dtype=bool)[idx]]
     return idx

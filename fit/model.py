@@ -200,8 +200,15 @@ class Model:
         p0 = np.zeros(n) if p0_mm is None else np.broadcast_to(np.asarray(p0_mm, float), (n,)).copy()
         return n, pds, ve, ve_per_set, coef, p0
 
-    def _widths(self, ctx: SimContext, area, pds, n):
-        """Height and width stages: (widths, heights) at the stations."""
+    def _widths(self, ctx: SimContext, area, pds, n, observe=None, station_ctx: SimContext | None = None):
+        """Height and width stages: (widths, heights) at the stations of ``ctx``.
+
+        ``observe`` (fit/observe.py): ``ctx``'s stations are its sub-stations; the laid
+        widths there are read through it onto the stations of ``station_ctx``, and the width
+        stages (the bead's spreading, the picture's nuisances) act on those, which are then
+        returned (heights stay at the sub-stations). A spreading applied after the
+        despeckling rather than before differs only where a feature is shorter than the
+        despeckling element, and at the sub-stations it would cost ~25x."""
         h = ctx.s_height_mm[None, :]
         for e, p in zip(self.effects, pds):
             if "height" in e.stages():
@@ -210,6 +217,8 @@ class Model:
         h = np.ascontiguousarray(np.broadcast_to(h, (n if h_per_set else 1, area.shape[1])), dtype=float)
         w = np.empty_like(area)
         K.kernel("bead_width", n)(area, h, h_per_set, ctx.printed, w)
+        if observe is not None:
+            w, ctx = observe.apply(w), station_ctx
         if self._width:
             for e, p in zip(self.effects, pds):
                 if "width" in e.stages():
@@ -244,7 +253,8 @@ class Model:
         return area
 
     def predict(self, ctx: SimContext, theta) -> np.ndarray:
-        """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed.
+        """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed; as
+        the measurement reads them where ``ctx.physics`` carries its kernel (fit/observe.py).
 
         Integrates on the coarsened physics timeline ``ctx.physics`` when there is one
         (fit/context.py :func:`coarsen_nodes`, same widths within ~1 um; cut after the last
@@ -255,7 +265,7 @@ class Model:
         area = np.empty((n, c.n_samples))
         K.kernel("predict", n)(self._mode, ve, ve_per_set, c.dt_s, c.v_head_mm_s, c.h_mm, c.on_track,
                                coef, c.filament_area_mm2, p0, c.deposit_map, area)
-        return self._widths(c, area, pds, n)[0]
+        return self._widths(c, area, pds, n, observe=c.obs, station_ctx=ctx)[0]
 
     #: nozzle terms whose steady advance is not linear in vn (Kalico match makes sense)
     NONLINEAR_TERMS = ("nonlinear", "bernoulli", "kalico_tanh", "kalico_recip")

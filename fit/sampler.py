@@ -74,7 +74,8 @@ def make_problem(model, data, noise: NoiseOptions | None = None, prior_overrides
         for sc, m in zip(scans, models):
             if sc.ctx is None:
                 from fit.context import SimContext
-                sc.ctx = SimContext.build(sc.manifest, sc.samples)
+                from fit.observe import observation_of
+                sc.ctx = SimContext.build(sc.manifest, sc.samples, observe=observation_of(sc.table))
     elif isinstance(model, (list, tuple)):
         models = list(model)
     else:

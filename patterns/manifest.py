@@ -297,31 +297,41 @@ def sample_points(manifest: Manifest, ds_mm: float = 0.25, kinds=("test",),
     Stations sit at s = margin, margin + ds, ... up to length - margin. ``t_s`` is the
     first time the timeline puts the nozzle at that arc length on that track.
     """
-    cols: dict[str, list] = {k: [] for k in Samples.__dataclass_fields__}
-    tl = manifest.timeline
+    ids, ss = [], []
     for tr in manifest.tracks:
         if tr.kind not in kinds or tr.length_mm <= 2 * margin_mm:
             continue
         n = int(np.floor((tr.length_mm - 2 * margin_mm) / ds_mm + 1e-9)) + 1
-        s = margin_mm + ds_mm * np.arange(n)
-        pos, tan = tr.at(s)
+        ids.append(np.full(n, tr.id))
+        ss.append(margin_mm + ds_mm * np.arange(n))
+    return samples_at(manifest, np.concatenate(ids) if ids else np.zeros(0, np.int64),
+                      np.concatenate(ss) if ss else np.zeros(0))
+
+
+def samples_at(manifest: Manifest, track, s_mm) -> Samples:
+    """Stations at arc lengths ``s_mm`` (mm) of the tracks ``track`` (ids of
+    ``manifest.tracks``), in the given order: positions and normals from the track (at s
+    clipped to it), commanded width and height, pass time ``t_s`` from the timeline (NaN
+    without one, or where the nozzle never reached s)."""
+    track = np.asarray(track, dtype=np.int64)
+    s_mm = np.asarray(s_mm, dtype=float)
+    n = len(track)
+    cols = {k: np.full(n, np.nan) for k in Samples.__dataclass_fields__ if k not in ("track", "s_mm")}
+    tl = manifest.timeline
+    ids = {tr.id: tr for tr in manifest.tracks}
+    for tid in np.unique(track):
+        tr = ids[int(tid)]
+        rows = np.flatnonzero(track == tid)
+        s = s_mm[rows]
+        pos, tan = tr.at(np.clip(s, 0.0, tr.length_mm))
         if tl is not None:
             on = tl.track == tr.id
-            t = _first_passage_time(tl.s_mm[on], tl.t_s[on], s)
-        else:
-            t = np.full(n, np.nan)
-        cols["track"].append(np.full(n, tr.id))
-        cols["s_mm"].append(s)
-        cols["x_mm"].append(pos[:, 0])
-        cols["y_mm"].append(pos[:, 1])
-        cols["t_s"].append(t)
-        cols["nx"].append(-tan[:, 1])
-        cols["ny"].append(tan[:, 0])
-        cols["width_nominal_mm"].append(tr.interp("width_mm", s))
-        cols["height_mm"].append(tr.interp("height_mm", s))
-    out = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in cols.items()}
-    out["track"] = out["track"].astype(np.int64)
-    return Samples(**out)
+            cols["t_s"][rows] = _first_passage_time(tl.s_mm[on], tl.t_s[on], s)
+        cols["x_mm"][rows], cols["y_mm"][rows] = pos[:, 0], pos[:, 1]
+        cols["nx"][rows], cols["ny"][rows] = -tan[:, 1], tan[:, 0]
+        cols["width_nominal_mm"][rows] = tr.interp("width_mm", s)
+        cols["height_mm"][rows] = tr.interp("height_mm", s)
+    return Samples(track=track.copy(), s_mm=s_mm.copy(), **cols)
 
 
 def _first_passage_time(s_tl: np.ndarray, t_tl: np.ndarray, s: np.ndarray) -> np.ndarray:
