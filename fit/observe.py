@@ -5,11 +5,13 @@ measurement (measure/widths.py) reads each station from the mean of STRIP_LINES 
 spread over STRIP_MM of the track, each offset's sequence along the track despeckled first:
 the mean of its open-close and its close-open with a flat element SPECK_MM long (Serra,
 "Image Analysis and Mathematical Morphology", 1982). A feature of the bead shorter than
-the element (a bulge where the head slows for 0.3 mm at a width step: Klipper's extruder
-junction limit) is flattened in the widths; a fit that predicts the laid bead there reads
-the flat data as information. Session 40 measured it: bench_e2e's back-pressure print,
-planned with the slowdown, gave 2 of 9 trusted fits with the truth outside their 99 %
-interval (|z| up to 3.24).
+the element (the tail where a line stops extruding mid-path, a bulge where the head slows
+for a moment) is flattened in the widths; a fit that predicts the laid bead there reads
+the flat data as information. bench_observe (true parameters, flatbed renders): on
+stop-mid-path lines the measured widths lie 9.6 um RMS from the laid prediction at the
+stations the kernel moves and 3.0 um from this one (direct drive; Bowden 5.4 -> 2.4 um).
+(It was not what misled session 40's back-pressure fits with Klipper's step slowdown:
+docs/TRUST.md.)
 
 Flat morphological filters commute with monotone functions. Across the track, the picture
 at offset t is a monotone function of the width (a bead of one edge profile, centred on
@@ -35,7 +37,7 @@ import numpy as np
 from measure.widths import SPECK_MM, STRIP_LINES, STRIP_MM
 
 #: Steps of the laid width smaller than this (mm) count as flat when the despeckling looks
-#: for the turns it can change (fit/kernels.py _despeckle_rows); what it then leaves is
+#: for the turns it can change (fit/kernels.py _observe_rows); what it then leaves is
 #: smaller than them. The integration's own ripple is 1e-8 - 1e-7 mm (a back-pressure
 #: spiral: 412 such turns against 49 above 1e-6), and each turn costs filtering.
 EPS_MM = 1e-6

@@ -39,12 +39,13 @@ def _stepped_widths(profile, sp: dict, widths, h_mm: float) -> tuple[np.ndarray,
     RAMP_SEG_MM apart where the firmware slows the head for a change of extrusion rate
     (patterns/planner.py ``extruder_junction_limit_mm_s``: Klipper's
     instantaneous_corner_velocity, 1 mm/s by default). Taken at once, a 0.35 -> 0.8 mm step
-    at 40 mm/s slowed a Klipper printer's head to 27 mm/s for ~0.3 mm; a bead that bulges
-    over a length the picture's strips smooth away (0.25 mm strips, 0.45 mm despeckling),
-    and bench_e2e's back-pressure fits read it confidently wrong (2 of 9 trusted fits with
-    the truth outside their 99 % interval, |z| up to 3.2, where the same seeds held it
-    before). In sub-steps of at most 0.9 of the limit the head keeps its speed, and the
-    ramp lasts (n - 1) RAMP_SEG_MM / v: 1.25 ms at 40 mm/s for that step (n = 2)."""
+    at 40 mm/s slowed a Klipper printer's head to 27 mm/s for ~0.3 mm, and bench_e2e's
+    back-pressure fits read it confidently wrong (2 of 9 trusted fits with the truth outside
+    their 99 % interval, |z| up to 3.6, where the same seeds held it before); not because
+    the picture smooths the short bulge (the fit reads it as the measurement does since
+    fit/observe.py, and the two stayed) but through the fast steps, which carry tau
+    (docs/TRUST.md). In sub-steps of at most 0.9 of the limit the head keeps its speed, and
+    the ramp lasts (n - 1) RAMP_SEG_MM / v: 1.25 ms at 40 mm/s for that step (n = 2)."""
     from patterns.planner import extruder_junction_limit_mm_s
 
     v = sp["speed_mm_s"]
