@@ -151,6 +151,23 @@ def test_stop_mid_path_feed_follows_exponential():
     assert np.abs(s_rel[late] - model[late]).max() < 0.05 * 40.0 * tau
 
 
+def test_start_stop_restores_scale_with_the_filament_path():
+    # seed 001's own sweep on the author's Adventurer 3; the advance is pressure times the
+    # path's compliance, which grows with the Bowden length (seed 000: tau ~ L)
+    from patterns.start_stop import SEED_RE_MM, default_re_mm
+
+    adv3 = default_re_mm(load_profile("adventurer3"))
+    assert adv3 == SEED_RE_MM
+    assert np.allclose(default_re_mm(load_profile("ender3")), 2 * np.asarray(SEED_RE_MM))   # 400 mm tube
+    # a direct drive's advance at 1 mm/s is tenths of a mm: restoring 2-4 mm buries the rings
+    dd = default_re_mm(load_profile("direct_drive"))
+    assert 0.1 <= min(dd) < max(dd) <= 0.5
+    _, man = PATTERNS["start-stop"]("direct_drive")
+    assert man.pattern["params"]["re_mm"] == list(dd)
+    restores = sorted({t.params["restore_mm"] for t in man.test_tracks()})
+    assert restores == list(dd)
+
+
 def test_overflow_is_a_user_error_naming_pattern_and_size():
     with pytest.raises(UserError, match=r"spiral-step needs \d+ mm in y but the bed is 150 mm: reduce --speeds"):
         PATTERNS["spiral-step"](load_profile("adventurer3"), speeds_mm_s=(20, 40, 60))

@@ -80,7 +80,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                                     "drool check, restore, cooldown; sweeps Re within a ring group and w "
                                     "between groups.")
     common(sp)
-    sp.add_argument("--re-mm", type=_floats, default=[2.0, 2.5, 3.0, 3.5, 4.0], help="restore distances, mm")
+    sp.add_argument("--re-mm", type=_floats, default=None,
+                    help="restore distances, mm of filament (default: seed 001's 2-4 mm on the Adventurer 3, "
+                         "scaled by the profile's Bowden length: 0.2-0.4 mm on a direct drive)")
     sp.add_argument("--widths", type=_floats, default=[0.3, 0.4, 0.8, 1.6], help="bead widths, mm")
     sp.add_argument("--ve", type=float, default=1.0, help="extruder velocity while drawing, mm/s (default 1)")
     sp.add_argument("--layer-height", type=float, default=0.3, help="layer height, mm (default 0.3)")
