@@ -578,78 +578,94 @@ def _flat_filter(a, k, take_max):
     return out
 
 
-def _observe_rows(w, lines, rows, keep, k, eps, out):
+def _observe_rows(w, lines, rows, starts, k, pad, eps, out):
     """fit/observe.py's measurement kernel: the laid widths w (n_sets, n * lines) at the
     sub-stations (station-major) read as the stations' widths out (n_sets, n) mm.
 
-    Per set: a NaN sub-station takes its station's centre (``lines // 2``); the sequence
-    w[rows] (the padded despeckled runs, concatenated; NaN read as 0) is replaced at the
-    entries ``keep`` by the mean of its open-close and close-open (flat element ``k``
-    samples); each station is the mean of its sub-stations, NaN where its centre is.
-    Only the places j whose reach [j - R, j + R], R = 4 (k // 2), holds a turn of the
-    sequence (a rise and a fall by more than ``eps`` mm, in either order) are filtered: the
-    four filters reach R samples, and all of them leave a sequence that is monotone over
-    [j - R, j + R] as it is at j, so the rest is exact as it stands."""
+    Per set: a NaN sub-station takes its station's centre (``lines // 2``); each station
+    reads the mean of its sub-stations, NaN where its centre is. Along each despeckled run
+    (``rows[starts[r]:starts[r + 1]]``, continued by ``pad`` copies of its end values on
+    both sides as the measurement filters it; NaN read as 0) the sub-stations then read the
+    mean of the run's open-close and close-open (flat element ``k`` samples). Only the
+    places j whose reach [j - R, j + R], R = 4 (k // 2) <= pad, holds a turn of the run (a
+    rise and a fall by more than ``eps`` mm, in either order) are filtered: the four
+    filters reach R samples, and all of them leave a sequence that is monotone over
+    [j - R, j + R] as it is at j, so the rest is exact as it stands. The end copies are
+    flat, so a turn lies inside a run; a place is filtered on a stretch reaching R beyond
+    it, its entries past the run's ends read the end values, as in the padded run."""
     n_sets = w.shape[0]
     n = out.shape[1]
-    T = len(rows)
+    n_runs = len(starts) - 1
     R = 4 * (k // 2)
+    l_max = 0
+    for r in range(n_runs):
+        l_max = max(l_max, starts[r + 1] - starts[r])
     for i in prange(n_sets):
-        buf = np.empty(n * lines)
         for st in range(n):
             c = w[i, st * lines + lines // 2]
-            for q in range(st * lines, (st + 1) * lines):
-                v = w[i, q]
-                buf[q] = v if v == v else c
-        seq = np.empty(T)
-        for j in range(T):
-            v = buf[rows[j]]
-            seq[j] = v if v == v else 0.0
-        mark = np.zeros(T, np.bool_)
-        last_sign = 0
-        last_j = 0
-        for j in range(1, T):
-            d = seq[j] - seq[j - 1]
-            sg = 1 if d > eps else (-1 if d < -eps else 0)
-            if sg != 0:
-                # a rise at last_j and a fall at j (or the reverse), nothing between: the
-                # places whose reach holds both
-                if last_sign != 0 and sg != last_sign:
-                    for q in range(max(j - R, 0), min(last_j - 1 + R, T - 1) + 1):
-                        mark[q] = True
-                last_sign = sg
-                last_j = j
-        j = 0
-        while j < T:
-            if not mark[j]:
-                j += 1
-                continue
-            a = j
-            while j < T and mark[j]:
-                j += 1
-            n_keep = 0
-            for q in range(a, j):
-                n_keep += keep[q]
-            if n_keep == 0:
-                continue
-            sa, sb = max(a - R, 0), min(j + R, T)
-            seg = seq[sa:sb]
-            op = _flat_filter(_flat_filter(seg, k, False), k, True)
-            cl = _flat_filter(_flat_filter(seg, k, True), k, False)
-            oc = _flat_filter(_flat_filter(op, k, True), k, False)
-            co = _flat_filter(_flat_filter(cl, k, False), k, True)
-            for q in range(a, j):
-                if keep[q] and buf[rows[q]] == buf[rows[q]]:
-                    buf[rows[q]] = 0.5 * (oc[q - sa] + co[q - sa])
-        for st in range(n):
-            c = buf[st * lines + lines // 2]
             if c != c:
                 out[i, st] = np.nan
                 continue
             acc = 0.0
             for q in range(st * lines, (st + 1) * lines):
-                acc += buf[q]
+                v = w[i, q]
+                acc += v if v == v else c
             out[i, st] = acc / lines
+        seq = np.empty(l_max)
+        mark = np.empty(l_max, np.bool_)
+        for r in range(n_runs):
+            r0 = starts[r]
+            L = starts[r + 1] - r0
+            for j in range(L):
+                q = rows[r0 + j]
+                v = w[i, q]
+                if v != v:
+                    v = w[i, (q // lines) * lines + lines // 2]
+                seq[j] = v if v == v else 0.0
+            any_mark = False
+            last_sign = 0
+            last_j = 0
+            for j in range(L):
+                mark[j] = False
+            for j in range(1, L):
+                d = seq[j] - seq[j - 1]
+                sg = 1 if d > eps else (-1 if d < -eps else 0)
+                if sg != 0:
+                    # a rise at last_j and a fall at j (or the reverse), nothing between: the
+                    # places whose reach holds both
+                    if last_sign != 0 and sg != last_sign:
+                        for q in range(max(j - R, 0), min(last_j - 1 + R, L - 1) + 1):
+                            mark[q] = True
+                        any_mark = True
+                    last_sign = sg
+                    last_j = j
+            if not any_mark:
+                continue
+            j = 0
+            while j < L:
+                if not mark[j]:
+                    j += 1
+                    continue
+                a = j
+                while j < L and mark[j]:
+                    j += 1
+                sa, sb = max(a - R, -pad), min(j + R, L + pad)
+                seg = np.empty(sb - sa)
+                for p in range(sa, sb):
+                    seg[p - sa] = seq[min(max(p, 0), L - 1)]
+                op = _flat_filter(_flat_filter(seg, k, False), k, True)
+                cl = _flat_filter(_flat_filter(seg, k, True), k, False)
+                oc = _flat_filter(_flat_filter(op, k, True), k, False)
+                co = _flat_filter(_flat_filter(cl, k, False), k, True)
+                for q in range(a, j):
+                    sub = rows[r0 + q]
+                    st = sub // lines
+                    c = w[i, st * lines + lines // 2]
+                    if c != c:
+                        continue
+                    v = w[i, sub]
+                    old = v if v == v else c
+                    out[i, st] += (0.5 * (oc[q - sa] + co[q - sa]) - old) / lines
 
 
 # Each kernel twice: serial (one or a few parameter sets: no thread start-up cost) and

@@ -50,9 +50,10 @@ class Observation:
     lines      sub-stations per station (the measurement's lines per strip)
     strip_mm   length of track each station's lines span (mm)
     speck      the despeckling element (sub-stations, odd: SPECK_MM / (strip_mm / lines))
-    rows       (T,) sub-station indices of the runs, each continued by 2 ``speck`` copies
-               of its end values on both sides (as measure/widths.py filters them), concatenated
-    keep       (T,) the entries of ``rows`` that are the runs themselves
+    rows       (T,) sub-station indices of the despeckled runs, concatenated
+    starts     (runs + 1,) where each run begins in ``rows``, and T
+    pad        end copies continuing each run on both sides (measure/widths.py filters a run
+               with 2 ``speck`` copies of its end values)
     n_stations number of stations (table rows)
     """
 
@@ -60,7 +61,8 @@ class Observation:
     strip_mm: float
     speck: int
     rows: np.ndarray
-    keep: np.ndarray
+    starts: np.ndarray
+    pad: int
     n_stations: int
 
     @property
@@ -84,7 +86,7 @@ class Observation:
 
         w = np.ascontiguousarray(np.atleast_2d(np.asarray(w_sub, dtype=float)))
         out = np.empty((len(w), self.n_stations))
-        kernel("observe", len(w))(w, self.lines, self.rows, self.keep, self.speck, EPS_MM, out)
+        kernel("observe", len(w))(w, self.lines, self.rows, self.starts, self.speck, self.pad, EPS_MM, out)
         return out
 
 
@@ -106,16 +108,10 @@ def observation_of(table) -> Observation | None:
     join = np.zeros(len(order), bool)
     join[1:] = linked[1:] & (tr[1:] == tr[:-1]) & (np.abs(np.diff(ss) - STRIP_MM) < 1e-6)
     starts = np.flatnonzero(~join)
-    pad = 2 * k
-    rows, keep = [], []
-    for a, b in zip(starts, np.append(starts[1:], len(order))):
-        if b - a < 2:
-            continue
-        r = (order[a:b, None] * lines + np.arange(lines)).ravel()
-        rows.append(np.concatenate([np.full(pad, r[0]), r, np.full(pad, r[-1])]))
-        keep.append(np.r_[np.zeros(pad, bool), np.ones(len(r), bool), np.zeros(pad, bool)])
+    rows = [(order[a:b, None] * lines + np.arange(lines)).ravel()
+            for a, b in zip(starts, np.append(starts[1:], len(order))) if b - a >= 2]
     if not rows:
         return None
     return Observation(lines=lines, strip_mm=STRIP_MM, speck=k, rows=np.concatenate(rows),
-                       keep=np.concatenate(keep), n_stations=len(track))
+                       starts=np.cumsum([0] + [len(r) for r in rows]), pad=2 * k, n_stations=len(track))
 

@@ -82,6 +82,31 @@ def tau_guess_s(profile, ve_s: float = VE_SEED000_S, floor_s: float = 0.03) -> f
     return max(float(tau), floor_s)
 
 
+#: Seed 001's author's printer (Adventurer 3): filament D, Bowden L, nozzle land l, nozzle d
+#: (mm), the shipped adventurer3 profile's geometry. His restore distances (RetractTest
+#: Re 1 mm, StartStopTest Re 2-4 mm) were chosen for it.
+SEED001_PATH_MM = dict(D=1.75, L=200.0, l=0.6, d=0.4)
+
+
+def seed001_scale(profile) -> float:
+    """Factor (1) from seed 001's filament advances on its Adventurer 3 to this printer's.
+
+    The advance Pe = Kf vn + Kb Db (seed 001, mm of filament) is a pressure times the
+    filament path's compliance, which grows with the Bowden length as seed 000's time
+    constant does: tau_guess(profile) / tau_guess(Adventurer 3), with :func:`tau_guess_s`
+    (a direct drive floored at 0.03 s: 0.1; a 400 mm Bowden: 2)."""
+    g = SEED001_PATH_MM
+    seed_tau = 32.0 * g["D"] ** 2 * g["L"] * g["l"] / g["d"] ** 4 * VE_SEED000_S
+    return tau_guess_s(profile) / seed_tau
+
+
+def scaled_restore_mm(profile, seed_mm) -> tuple[float, ...]:
+    """Seed 001's restore distances ``seed_mm`` (mm of filament) on this printer
+    (:func:`seed001_scale`), rounded to 0.05 mm and at least 0.05 mm."""
+    f = seed001_scale(profile)
+    return tuple(max(round(round(r * f / 0.05) * 0.05, 2), 0.05) for r in np.atleast_1d(seed_mm))
+
+
 # -- spirals ----------------------------------------------------------------------
 def spiral_length_mm(r_in_mm: float, r_out_mm: float, pitch_mm: float) -> float:
     """Arc length (mm) of an Archimedean spiral r = r_in + b theta, b = pitch / 2 pi.

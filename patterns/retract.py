@@ -28,6 +28,7 @@ from patterns.profile import load_profile
 NAME = "retract"
 PRIME_MM, PRIME_SPEED = 4.0, 1.0
 DRAIN_MM, DRAIN_SPEED = 8.0, 1.0
+SEED_RESTORE_MM = 1.0      # seed 001's RetractTest -Re=1.0 on its Adventurer 3
 PRIME_WIDTH_MM = 0.5
 
 
@@ -72,18 +73,22 @@ def _label(design, ln):
     return f"{design} v{ln['speed_mm_s']:.0f}"
 
 
-def generate(profile, *, designs=(1, 2, 3, 4), n_steps=6, draw_mm=40.0, restore_mm=1.0,
+def generate(profile, *, designs=(1, 2, 3, 4), n_steps=6, draw_mm=40.0, restore_mm=None,
              retract_mm=4.0, retract_move_mm=40.0, retract_move_speed_mm_s=10.0):
     """G-code and manifest of the retract pattern.
 
     designs    which seed-001 designs to print (1..4)
     n_steps    lines per design (seed 001 uses 11: 10 steps)
     draw_mm    length of the steady line (mm)
-    restore_mm Re (mm of filament) applied after the drain, before the line
+    restore_mm Re (mm of filament) applied after the drain, before the line; None: seed 001's
+               1 mm on its Adventurer 3 scaled to this printer's filament path
+               (patterns.layout.scaled_restore_mm: 0.1 mm on a direct drive)
     retract_mm filament retracted during the moving retraction (mm), over
     retract_move_mm at retract_move_speed_mm_s (seed 001: 4 mm over 40 mm at 10 mm/s)
     """
     profile = load_profile(profile)
+    if restore_mm is None:
+        restore_mm = layout.scaled_restore_mm(profile, SEED_RESTORE_MM)[0]
     designs = [int(d) for d in np.atleast_1d(designs)]
     if n_steps < 2:
         raise UserError("retract: --steps must be >= 2")

@@ -37,29 +37,16 @@ LABEL_H_MM = 3.0
 #: The author's restore sweep (mm of filament) for his Adventurer 3 (seed 001: Re 2-4 mm at
 #: ve 1 mm/s; his fitted Kf 0.4 s, Kb 3.0 give Pe = Kf ve + Kb Db = 1.6-2.7 mm).
 SEED_RE_MM = (2.0, 2.5, 3.0, 3.5, 4.0)
-#: That printer's filament path: filament D, Bowden L, nozzle land l, nozzle d (mm), the
-#: shipped adventurer3 profile's geometry.
-SEED_PATH_MM = dict(D=1.75, L=200.0, l=0.6, d=0.4)
 
 
 def default_re_mm(profile) -> tuple[float, ...]:
     """Restore distances Re (mm of filament) to sweep on this printer: seed 001's sweep
-    scaled by the filament path's compliance.
-
-    The advance Pe = Kf vn + Kb Db (seed 001) is a pressure times the path's compliance, and
-    the compliance grows with the Bowden length: seed 000's tau = 32 D^2 L l / d^4 * VE
-    (patterns.layout.tau_guess_s, floored at 0.03 s for a direct drive). So
-
-        Re = SEED_RE_MM * tau_guess(profile) / tau_guess(seed 001's Adventurer 3)
-
-    rounded to 0.05 mm: 2-4 mm on the Adventurer 3, 0.2-0.4 mm on a direct drive (whose
-    advance at 1 mm/s is PA 0.02-0.08 s times 1 mm/s plus the bead's back-pressure), 4-8 mm
-    on a 400 mm Bowden. A direct drive restored by the Bowden's 2-4 mm lays blobs mm across
+    scaled by the filament path's compliance (patterns.layout.seed001_scale), rounded to
+    0.05 mm: 2-4 mm on the Adventurer 3, 0.2-0.4 mm on a direct drive (whose advance at
+    1 mm/s is PA 0.02-0.08 s times 1 mm/s plus the bead's back-pressure), 4-8 mm on a
+    400 mm Bowden. A direct drive restored by the Bowden's 2-4 mm lays blobs mm across
     that cover the neighbouring rings."""
-    g = SEED_PATH_MM
-    seed_tau = 32.0 * g["D"] ** 2 * g["L"] * g["l"] / g["d"] ** 4 * layout.VE_SEED000_S
-    scale = layout.tau_guess_s(profile) / seed_tau
-    return tuple(round(round(r * scale / 0.05) * 0.05, 2) for r in SEED_RE_MM)
+    return layout.scaled_restore_mm(profile, SEED_RE_MM)
 
 
 def generate(profile, *, re_mm=None, widths_mm=(0.3, 0.4, 0.8, 1.6), ve_mm_s=1.0,

@@ -90,7 +90,7 @@ def test_parallel_lines_without_markers_are_placed_along_their_lines_by_the_labe
     from patterns import retract
     from patterns.profile import data_dir
 
-    man = _without_markers(retract.generate("long_bowden", designs=(3, 4), n_steps=4)[1])
+    man = _without_markers(retract.generate("long_bowden", designs=(3, 4), n_steps=4, restore_mm=1.0)[1])
     spec, values, _ = load_truth(data_dir() / "truths" / "bowden.toml")
     r, _ = simulate_scan(man, spec, values, "flatbed", profile=man.printer, dpi=400.0, seed=0)
     path = tmp_path / "scan.png"

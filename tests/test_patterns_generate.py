@@ -166,6 +166,10 @@ def test_start_stop_restores_scale_with_the_filament_path():
     assert man.pattern["params"]["re_mm"] == list(dd)
     restores = sorted({t.params["restore_mm"] for t in man.test_tracks()})
     assert restores == list(dd)
+    # RetractTest's 1 mm restore likewise
+    for name, re_mm in (("adventurer3", 1.0), ("direct_drive", 0.1), ("ender3", 2.0)):
+        _, man = PATTERNS["retract"](name, designs=[1], n_steps=2)
+        assert {t.params["restore_mm"] for t in man.test_tracks()} == {re_mm}
 
 
 def test_overflow_is_a_user_error_naming_pattern_and_size():

@@ -73,7 +73,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     sp.add_argument("--designs", type=_ints, default=[1, 2, 3, 4], help="seed-001 designs 1..4 (default all)")
     sp.add_argument("--steps", type=int, default=6, help="lines per design (default 6)")
     sp.add_argument("--draw-mm", type=float, default=40.0, help="steady line length, mm (default 40)")
-    sp.add_argument("--restore-mm", type=float, default=1.0, help="restore Re before the line, mm (default 1)")
+    sp.add_argument("--restore-mm", type=float, default=None,
+                    help="restore Re before the line, mm of filament (default: seed 001's 1 mm on the "
+                         "Adventurer 3, scaled by the profile's Bowden length: 0.1 mm on a direct drive)")
 
     sp = sub.add_parser("start-stop", help="restore/retract sweep on concentric arcs (seed 001 StartStopTest)",
                         description="Seed-001 spiral StartStopTest: prime, drain, restore Re, draw, retract, "
