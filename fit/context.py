@@ -132,10 +132,10 @@ class SimContext:
     @property
     def station_printed(self) -> np.ndarray:
         """(n_stations,) ``printed`` per station of the widths table: on a context of
-        sub-stations (:attr:`obs`), its station's centre sub-station's."""
+        the kernel's physics points (:attr:`obs`), its station's centre's."""
         if self.obs is None:
             return self.printed
-        return np.asarray(self.printed).reshape(-1, self.obs.lines)[:, self.obs.lines // 2]
+        return np.asarray(self.printed)[self.obs.centre_points]
 
     @property
     def deposit_map(self) -> tuple:
@@ -265,7 +265,10 @@ class SimContext:
             if observe is not None:
                 if observe.n_stations != len(st["track"]):
                     raise ValueError(f"observation for {observe.n_stations} stations, context has {len(st['track'])}")
-                trk_sub, s_sub = observe.substations(st["track"], st["s_mm"])
+                from fit.observe import near_changes
+
+                observe = observe.focused(near_changes(manifest, st["track"], st["s_mm"]))
+                trk_sub, s_sub = observe.points()
                 # the measurement's lines stop at the track's ends (measure/widths.py)
                 length = {tid: tr.length_mm for tid, tr in track_of.items()}
                 s_sub = np.clip(s_sub, 0.0, np.array([length.get(int(k), np.inf) for k in trk_sub]))

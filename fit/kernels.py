@@ -562,12 +562,10 @@ def _spread_rows(w, order, s, starts, sig, out):
 
 
 @njit(cache=True)
-def _flat_filter(a, k, take_max):
-    """Grey erosion (take_max False) or dilation of the 1-D ``a`` with a flat element of
-    ``k`` samples, window [j - k//2, j + (k-1)//2] clipped to ``a`` (ends continued by
-    their own values)."""
-    n = len(a)
-    out = np.empty(n)
+def _flat_filter(a, n, k, take_max, out):
+    """Grey erosion (take_max False) or dilation of ``a[:n]`` with a flat element of ``k``
+    samples into ``out[:n]``, window [j - k//2, j + (k-1)//2] clipped to ``a[:n]`` (ends
+    continued by their own values)."""
     for j in range(n):
         lo, hi = max(j - k // 2, 0), min(j + (k - 1) // 2, n - 1)
         v = a[lo]
@@ -575,52 +573,130 @@ def _flat_filter(a, k, take_max):
             if (a[q] > v) if take_max else (a[q] < v):
                 v = a[q]
         out[j] = v
-    return out
 
 
-def _observe_rows(w, lines, rows, starts, k, pad, eps, out):
-    """fit/observe.py's measurement kernel: the laid widths w (n_sets, n * lines) at the
-    sub-stations (station-major) read as the stations' widths out (n_sets, n) mm.
+@njit(cache=True)
+def _sub_station(w, i, f, j, h, st, centre, prev, nxt, own):
+    """Laid width (mm) at sub-station j of station st for set i (see :func:`_observe_rows`)."""
+    c = w[i, centre[st]]
+    if own[st]:
+        v = w[i, centre[st] - h + j]
+        return v if v == v else c
+    a = w[i, prev[st]] if prev[st] >= 0 else np.nan
+    b = w[i, nxt[st]] if nxt[st] >= 0 else np.nan
+    fj = f[j]
+    if a == a and b == b:
+        return c + 0.5 * fj * (b - a) + 0.5 * fj * fj * (a - 2.0 * c + b)
+    if a == a:
+        return c + fj * (c - a)
+    if b == b:
+        return c + fj * (b - c)
+    return c
 
-    Per set: a NaN sub-station takes its station's centre (``lines // 2``); each station
-    reads the mean of its sub-stations, NaN where its centre is. Along each despeckled run
-    (``rows[starts[r]:starts[r + 1]]``, continued by ``pad`` copies of its end values on
-    both sides as the measurement filters it; NaN read as 0) the sub-stations then read the
-    mean of the run's open-close and close-open (flat element ``k`` samples). Only the
-    places j whose reach [j - R, j + R], R = 4 (k // 2) <= pad, holds a turn of the run (a
-    rise and a fall by more than ``eps`` mm, in either order) are filtered: the four
-    filters reach R samples, and all of them leave a sequence that is monotone over
-    [j - R, j + R] as it is at j, so the rest is exact as it stands. The end copies are
-    flat, so a turn lies inside a run; a place is filtered on a stretch reaching R beyond
-    it, its entries past the run's ends read the end values, as in the padded run."""
+
+def _observe_rows(w, lines, f, centre, prev, nxt, own, rows, starts, k, pad, eps, out):
+    """fit/observe.py's measurement kernel: the laid widths w (n_sets, m) at the physics
+    points read as the stations' widths out (n_sets, n) mm.
+
+    The sub-stations (``f`` (lines,) their offsets in station spacings): a station that
+    ``own``s them has them as the points from ``centre[st] - lines // 2`` on; another has
+    the quadratic through the centres of its track neighbours (points ``prev``/``nxt``, -1:
+    none) and its own at f (Lagrange at -1, 0, 1: f (f - 1) / 2, 1 - f^2, f (f + 1) / 2),
+    the line through two where one neighbour is missing, its centre where both are. A NaN
+    sub-station takes its station's centre; each station reads the mean of its
+    sub-stations, NaN where its centre is.
+
+    Along each despeckled run (the sub-stations ``rows[starts[r]:starts[r + 1]]``,
+    station-major, continued by ``pad`` copies of its end values on both sides as the
+    measurement filters it; NaN read as 0) the sub-stations then read the mean of the
+    run's open-close and close-open (flat element ``k`` samples). Only the places j whose
+    reach [j - R, j + R], R = 4 (k // 2) <= pad, holds a turn of the run (a rise and a fall
+    by more than ``eps`` mm, in either order) are filtered: the four filters reach R
+    samples, and all of them leave a sequence that is monotone over [j - R, j + R] as it is
+    at j, so the rest is exact as it stands. The end copies are flat, so a turn lies inside
+    a run; a place is filtered on a stretch reaching R beyond it, its entries past the run's
+    ends read the end values, as in the padded run. A run of interpolated stations whose
+    centres (with the neighbours they are interpolated from) do not turn is not filtered:
+    the quadratics through monotone centres are monotone over |f| <= 0.4, so what turns is
+    only where one station's quadratic meets the next's, by the interpolation's own error."""
     n_sets = w.shape[0]
     n = out.shape[1]
     n_runs = len(starts) - 1
     R = 4 * (k // 2)
+    h = lines // 2
     l_max = 0
     for r in range(n_runs):
         l_max = max(l_max, starts[r + 1] - starts[r])
+    m2 = 0.0
+    for j in range(lines):
+        m2 += f[j] * f[j] / lines
     for i in prange(n_sets):
         for st in range(n):
-            c = w[i, st * lines + lines // 2]
+            c = w[i, centre[st]]
             if c != c:
                 out[i, st] = np.nan
-                continue
-            acc = 0.0
-            for q in range(st * lines, (st + 1) * lines):
-                v = w[i, q]
-                acc += v if v == v else c
-            out[i, st] = acc / lines
+            elif own[st]:
+                acc = 0.0
+                for q in range(centre[st] - h, centre[st] - h + lines):
+                    v = w[i, q]
+                    acc += v if v == v else c
+                out[i, st] = acc / lines
+            else:
+                a = w[i, prev[st]] if prev[st] >= 0 else np.nan
+                b = w[i, nxt[st]] if nxt[st] >= 0 else np.nan
+                # the quadratic's mean over the symmetric offsets; a line's is c
+                out[i, st] = c + 0.5 * m2 * (a - 2.0 * c + b) if (a == a and b == b) else c
         seq = np.empty(l_max)
         mark = np.empty(l_max, np.bool_)
+        # the filters' work space: a stretch is at most a run and R + pad each side
+        seg = np.empty(l_max + 2 * (R + pad))
+        t1 = np.empty_like(seg)
+        t2 = np.empty_like(seg)
+        oc = np.empty_like(seg)
+        co = np.empty_like(seg)
         for r in range(n_runs):
             r0 = starts[r]
             L = starts[r + 1] - r0
+            # interpolated stations only, and their centres do not turn: nothing to filter
+            needed = False
+            last_sign = 0
+            prev_v = 0.0
+            first = True
+            for jj in range(0, L, lines):
+                st = rows[r0 + jj] // lines
+                if own[st]:
+                    needed = True
+                    break
+                for which in range(3):
+                    if which == 0:
+                        if jj != 0 or prev[st] < 0:
+                            continue
+                        v = w[i, prev[st]]
+                    elif which == 1:
+                        v = w[i, centre[st]]
+                    else:
+                        if jj != L - lines or nxt[st] < 0:
+                            continue
+                        v = w[i, nxt[st]]
+                    v = v if v == v else 0.0
+                    if not first:
+                        d = v - prev_v
+                        sg = 1 if d > eps else (-1 if d < -eps else 0)
+                        if sg != 0:
+                            if last_sign != 0 and sg != last_sign:
+                                needed = True
+                            last_sign = sg
+                    first = False
+                    prev_v = v
+                if needed:
+                    break
+            if not needed:
+                continue
             for j in range(L):
                 q = rows[r0 + j]
-                v = w[i, q]
-                if v != v:
-                    v = w[i, (q // lines) * lines + lines // 2]
+                st = q // lines
+                c = w[i, centre[st]]
+                v = _sub_station(w, i, f, q - st * lines, h, st, centre, prev, nxt, own) if c == c else np.nan
                 seq[j] = v if v == v else 0.0
             any_mark = False
             last_sign = 0
@@ -650,22 +726,22 @@ def _observe_rows(w, lines, rows, starts, k, pad, eps, out):
                 while j < L and mark[j]:
                     j += 1
                 sa, sb = max(a - R, -pad), min(j + R, L + pad)
-                seg = np.empty(sb - sa)
+                m = sb - sa
                 for p in range(sa, sb):
                     seg[p - sa] = seq[min(max(p, 0), L - 1)]
-                op = _flat_filter(_flat_filter(seg, k, False), k, True)
-                cl = _flat_filter(_flat_filter(seg, k, True), k, False)
-                oc = _flat_filter(_flat_filter(op, k, True), k, False)
-                co = _flat_filter(_flat_filter(cl, k, False), k, True)
+                _flat_filter(seg, m, k, False, t1)           # open, then close: oc
+                _flat_filter(t1, m, k, True, t2)
+                _flat_filter(t2, m, k, True, t1)
+                _flat_filter(t1, m, k, False, oc)
+                _flat_filter(seg, m, k, True, t1)            # close, then open: co
+                _flat_filter(t1, m, k, False, t2)
+                _flat_filter(t2, m, k, False, t1)
+                _flat_filter(t1, m, k, True, co)
                 for q in range(a, j):
                     sub = rows[r0 + q]
                     st = sub // lines
-                    c = w[i, st * lines + lines // 2]
-                    if c != c:
-                        continue
-                    v = w[i, sub]
-                    old = v if v == v else c
-                    out[i, st] += (0.5 * (oc[q - sa] + co[q - sa]) - old) / lines
+                    if out[i, st] == out[i, st]:
+                        out[i, st] += (0.5 * (oc[q - sa] + co[q - sa]) - seq[q]) / lines
 
 
 # Each kernel twice: serial (one or a few parameter sets: no thread start-up cost) and

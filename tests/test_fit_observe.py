@@ -155,7 +155,10 @@ def test_fit_context_predicts_through_the_measurement():
     table.width_corr_prev = np.where(first, 0.0, 0.45)
     sc = scan_from_table(table, man, "linked")
     assert sc.ctx.physics is not None and sc.ctx.physics.obs is not None
-    assert sc.ctx.physics.n_samples == STRIP_LINES * len(table)
+    obs = sc.ctx.physics.obs
+    # sub-stations only near the steps and the ends; the rest one point per station
+    assert sc.ctx.physics.n_samples == obs.n_points
+    assert len(table) < obs.n_points < 0.6 * STRIP_LINES * len(table)
     th = model.theta_from({"pa.tau_s": 0.043})[None]
     seen = model.predict(sc.ctx, th)[0]
     laid = model.predict(SimContext.build(man, sc.samples), th)[0]
@@ -173,6 +176,38 @@ def test_fit_context_predicts_through_the_measurement():
     sc0 = scan_from_table(table, man, "unlinked")
     assert sc0.ctx.physics is None or sc0.ctx.physics.obs is None
     np.testing.assert_allclose(model.predict(sc0.ctx, th)[0], laid, atol=2e-6, equal_nan=True)
+
+
+@pytest.mark.parametrize("pattern,printer", [("stop-mid-path", "direct_drive"), ("spiral-step", "adventurer3")])
+def test_sub_stations_only_near_changes_read_as_sub_stations_everywhere(monkeypatch, pattern, printer):
+    """Stations NEAR_MM from any change of flow or speed take their sub-stations from the
+    station widths; over time constants 0.005-2 s and three nozzle models the widths read
+    stay within 0.1 um of sub-stations computed everywhere."""
+    import fit.observe as fo
+    from fit.data import scan_from_table
+    from fit.model import build_model
+    from patterns.builder import PATTERNS
+    from patterns.manifest import sample_points
+
+    _, man = PATTERNS[pattern](printer)
+    man = man.cut_to_test_tracks(pad_s=1.0)
+    smp = sample_points(man)
+    n = len(smp.track)
+    first = np.r_[True, np.diff(smp.track) != 0]
+    rho = np.where(first | (np.arange(n) % 4 == 0), 0.0, 0.45)      # ~1 mm runs, as measured
+    table = _table(smp, rho)
+    focused = scan_from_table(table, man, "focused").ctx
+    monkeypatch.setattr(fo, "NEAR_MM", np.inf)
+    full = scan_from_table(table, man, "full").ctx
+    assert full.physics.obs.n_points == STRIP_LINES * n
+    assert focused.physics.obs.n_points < 0.5 * STRIP_LINES * n
+    for spec in ("pa", "pa+nonlinear", "pa+backpressure+thermal"):
+        model = build_model(spec)
+        th = np.repeat(model.default_theta()[None], 8, axis=0)
+        th[:, 0] = np.geomspace(0.005, 2.0, 8)
+        a, b = model.predict(focused, th), model.predict(full, th)
+        assert np.array_equal(np.isfinite(a), np.isfinite(b))
+        assert np.nanmax(np.abs(a - b)) < 1e-4, spec
 
 
 def test_constants_match_the_measurement():
