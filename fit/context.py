@@ -117,8 +117,10 @@ class SimContext:
     #: On a coarsened context: index of each node in the full timeline.
     node_index: np.ndarray | None = field(default=None, repr=False)
     #: On :attr:`physics` when the widths came from the measurement: its along-track kernel
-    #: (fit/observe.py); the stations are then its sub-stations, and ``Model.predict`` reads
-    #: the widths through it. None: the stations are the table's, widths as laid.
+    #: (fit/observe.py); the stations are then its physics points (the sub-stations of the
+    #: stations near a change of flow or speed, the other stations' centres), and
+    #: ``Model.predict`` reads the widths through it. None: the stations are the table's,
+    #: widths as laid.
     obs: "object | None" = field(default=None, repr=False)
 
     @property
@@ -170,8 +172,10 @@ class SimContext:
         ``manifest.printer``). ``coarsen``: also build :attr:`physics`, the context on the
         coarsened timeline that ``predict`` integrates (see :func:`coarsen_nodes`).
         ``observe``: the measurement's kernel (fit/observe.py :class:`Observation`, one per
-        station of ``samples``): :attr:`physics` is then built on its sub-stations (always,
-        on the whole timeline where coarsening would not pay) and ``predict`` reads through it.
+        station of ``samples``): :attr:`physics` is then built on its physics points (always,
+        on the whole timeline where coarsening would not pay; sub-stations only within
+        fit.observe.NEAR_MM of a change of flow or speed, :func:`fit.observe.near_changes`)
+        and ``predict`` reads through it.
         """
         if isinstance(manifest, Timeline):
             manifest = Manifest(printer={}, pattern={}, tracks=[], timeline=manifest)

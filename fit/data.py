@@ -183,7 +183,7 @@ def scan_from_table(table: WidthTable, manifest: Manifest, name: str = "scan",
         from fit.observe import observation_of
         ctx = SimContext.build(manifest, samples, observe=observation_of(table))
     # the measurement's blur per station (fit/effects.py ViewBlur), on the context and on
-    # the coarsened one that predicts the widths (not on one of sub-stations, fit/observe.py:
+    # the coarsened one that predicts the widths (not on one of physics points, fit/observe.py:
     # the width stages act on the widths as read, at the context's own stations)
     for c in (ctx, getattr(ctx, "physics", None)):
         if c is None or getattr(c, "obs", None) is not None:

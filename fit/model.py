@@ -203,10 +203,11 @@ class Model:
     def _widths(self, ctx: SimContext, area, pds, n, observe=None, station_ctx: SimContext | None = None):
         """Height and width stages: (widths, heights) at the stations of ``ctx``.
 
-        ``observe`` (fit/observe.py): ``ctx``'s stations are its sub-stations; the laid
-        widths there are read through it onto the stations of ``station_ctx``, and the width
-        stages (the bead's spreading, the picture's nuisances) act on those, which are then
-        returned (heights stay at the sub-stations). A spreading applied after the
+        ``observe`` (fit/observe.py): ``ctx``'s stations are its physics points (sub-stations
+        near changes of flow or speed, station centres elsewhere); the laid widths there are
+        read through it onto the stations of ``station_ctx``, and the width stages (the
+        bead's spreading, the picture's nuisances) act on those, which are then returned
+        (heights stay at the physics points). A spreading applied after the
         despeckling rather than before differs only where a feature is shorter than the
         despeckling element, and at the sub-stations it would cost ~25x."""
         h = ctx.s_height_mm[None, :]
