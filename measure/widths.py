@@ -106,6 +106,9 @@ SD_OUTLIER_MIN_MM = 0.015
 #: 8.8 -> 5.4 um) for 1-2 % of the stations.
 ISOLATED_HALF_MM = 0.75
 ISOLATED_FRACTION = 0.4
+#: Where a track coasts (commanded width 0), a bead wider than this times its reference
+#: width (+ 0.05 mm) is not its ooze but a blob (measure_widths)
+BLOB_COAST_FACTOR = 1.2
 CONTAMINATED_FLAGS = ("fit", "glare", "blob", "oblique", "faint")
 #: A valid station is flagged "oblique" when the fitted centres of its track's valid
 #: stations within +-ISOLATED_HALF_MM run across the track: slope |dc/ds| > OBLIQUE_SLOPE
@@ -369,6 +372,11 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     if manifest is not None:
         flag[(flag == "") & _at_end(manifest, smp, w, w_ref, fit.params[:, 5])] = "end"
     blob = w > np.maximum(2.2 * w_ref, w_ref + 0.6)
+    # where the track coasts (commanded 0) its own ooze is narrower than the bead that
+    # stopped; something wider is a blob reaching in (the virtual start-stop rings' restore
+    # blobs read 0.77-1.07 mm up to 2.3 mm before the draw they restore for, on 0.3-0.8 mm
+    # rings)
+    blob |= (np.nan_to_num(w_nom) <= 0) & (w > BLOB_COAST_FACTOR * w_ref + 0.05)
     flag[(flag == "") & blob] = "blob"
     flag[(flag == "") & oblique(smp.track, smp.s_mm, c, flag == "")] = "oblique"
     flag[(flag == "") & isolated(smp.track, smp.s_mm, flag)] = "isolated"
@@ -732,10 +740,25 @@ def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None):
     return passes(), best, best_side[:, None] * normals[idx]
 
 
+def bead_ends_mm(track, step_mm: float = 0.05) -> np.ndarray:
+    """Arc lengths (mm) where ``track``'s bead ends: its two ends and, inside it, every
+    place its commanded width goes to or from zero (a line that stops extruding and
+    coasts, a restore before the next draw: seed 001's StartStopTest and RetractTest)."""
+    L = float(track.length_mm)
+    ends = [0.0, L]
+    if L > 2 * step_mm:
+        ss = np.arange(0.0, L + 1e-9, step_mm)
+        on = np.asarray(track.interp("width_mm", ss), float) > 1e-6
+        k = np.flatnonzero(on[1:] != on[:-1])
+        ends += list(0.5 * (ss[k] + ss[k + 1]))
+    return np.unique(np.round(ends, 9))
+
+
 def _at_end(manifest, smp, w_meas, w_ref, blur_mm=None):
-    """Stations within half a bead (+ 0.1 mm) of a track end, where the profile cuts the
-    round end cap (a chord, not the width). "Bead" = the widest measured within 3 mm of
-    that end, since end blobs are common (ooze, restore).
+    """Stations within half a bead (+ 0.1 mm) of a bead end (:func:`bead_ends_mm`: a
+    track's ends and where inside it the extrusion stops or starts), where the profile
+    cuts the round end cap (a chord, not the width). "Bead" = the widest measured within
+    3 mm of that end, since end blobs are common (ooze, restore).
 
     A blob (radius R, centred on the end) wider than the bead (width w, the median 1-3 mm
     before the end) lifts the widths of the stations whose profile sees it: the profile
@@ -744,15 +767,19 @@ def _at_end(manifest, smp, w_meas, w_ref, blur_mm=None):
     chord is wider than the bead). The foreign printer's probe (bench/foreign_printer.py):
     the drain after a track's last move left a 0.8 mm blob, and the station 0.5 mm before
     the end, outside the reach of half the bead + 0.1 mm (0.48 mm), read 0.18-0.20 mm too
-    wide on two tracks."""
+    wide on two tracks. Inside a track, the virtual printer's start-stop rings (direct
+    drive, pa + nonlinear at the truth) read 60-100 um wide 0.25 mm after the prime line's
+    stop and 0.1-0.9 mm wide up to 2.3 mm before the restore blob of the next draw, where
+    the bead is commanded 0: 61 um RMS over the valid stations at the truth, and `--model
+    auto` named no effect."""
     out = np.zeros(len(smp), bool)
     wm = np.where(np.isfinite(w_meas), w_meas, 0.0)
     blur = np.zeros(len(smp)) if blur_mm is None else np.nan_to_num(np.asarray(blur_mm, float))
     for tid in np.unique(smp.track):
         on = np.flatnonzero(smp.track == tid)
-        L = manifest.track(int(tid)).length_mm
         s = smp.s_mm[on]
-        for d in (s, L - s):            # distance to the start, to the end
+        for e in bead_ends_mm(manifest.track(int(tid))):
+            d = np.abs(s - e)
             near = d < 3.0
             if near.any():
                 widest = max(float(np.max(wm[on][near])), float(np.max(w_ref[on][near])))
