@@ -33,8 +33,9 @@ is there, or saturated pixels beside the bead: a bright logo in its window), ``m
 (no bead: width 0), ``faint`` (no bead found where one would not stand out of the
 profile's noise either: ``DETECTABLE_SNR``; not data), ``fit`` (failed or implausible
 fit, or far noisier than the rest of its track: a logo, scratch or string in the profile),
-``blob`` (far wider than commanded), ``end`` (within half a bead of a track end, where the
-profile cuts the round end cap).
+``blob`` (far wider than commanded, or wider than the track's bead where it coasts),
+``end`` (within half a bead of a bead end, where the profile cuts the round end cap: a
+track's ends and where inside it the extrusion stops or starts).
 """
 from __future__ import annotations
 
