@@ -30,8 +30,8 @@ Tables without links (truths, other tools) are predicted as laid.
 
 Only stations within NEAR_MM of a change in the commanded flow or head speed (or where
 the extrusion starts or stops) get their sub-stations from the physics; elsewhere the
-laid width is smooth on the strip's scale and each sub-station is interpolated from its
-station's and the track neighbours' widths (one physics point per station). On the demo
+laid width is smooth on the strip's scale and each sub-station is the quadratic through
+its station's and the track neighbours' widths (one physics point per station). On the demo
 spiral that leaves 6 % of its stations with sub-stations (stop-mid-path 18 %), and the
 widths read move by at most 0.08 um against sub-stations everywhere (tau 0.005-2 s,
 pa+nonlinear and pa+backpressure+thermal; tests/test_fit_observe.py).
