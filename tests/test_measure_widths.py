@@ -299,6 +299,7 @@ def test_a_never_printed_line_on_a_light_grained_plate_is_missing_by_its_colour(
     """Presence on a light grained plate (issue #10 item 5): the grain's dark spots pass for a
     coloured bead in grey, not in colour. A whole track never printed: <= 2 % of its stations
     pass (in grey alone many more), and no printed station is called missing."""
+    import measure.widths as mw
     from measure.camera import Camera
     from measure.contrast import bead_channel
     from measure.render import render
@@ -317,7 +318,15 @@ def test_a_never_printed_line_on_a_light_grained_plate_is_missing_by_its_colour(
     tb = measure_widths(img, man, reg, color=r.image, colour_axis=ch).table
     assert tb.valid[gone].mean() <= 0.02
     assert (tb.flag[~gone] == "missing").mean() < 0.01 and tb.valid[~gone].mean() > 0.9
+    # grey alone: grain spots pass for a bead between stations that saw none; the tip rule
+    # (a station beside an absent one holds a bead's tip) leaves fewer of them, not none
     grey = measure_widths(g, man, reg, color=r.image).table
+    assert 0.0 < grey.valid[gone].mean() < 0.05
+    mw.TIP_REACH_MM, old = 0.0, mw.TIP_REACH_MM
+    try:
+        grey = measure_widths(g, man, reg, color=r.image).table
+    finally:
+        mw.TIP_REACH_MM = old
     assert grey.valid[gone].mean() > 0.1
 
 
@@ -650,3 +659,43 @@ def test_start_stop_rings_read_the_model_where_the_bead_stops_starts_and_blobs(t
     r = table.width_mm[ok] - pred[ok]
     assert ok.sum() > 0.5 * np.sum(table.width_mm > 0)
     assert np.sqrt(np.mean(r ** 2)) < 0.010 and np.max(np.abs(r)) < 0.04
+
+
+def test_beside_absence_marks_the_stations_next_to_a_missing_one_on_the_same_track():
+    from measure.widths import beside_absence
+    track = np.array([1, 1, 1, 1, 1, 1, 2, 2, 2])
+    s = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 0.0, 0.25, 0.5])
+    absent = np.array([0, 0, 0, 1, 1, 0, 0, 0, 0], bool)
+    np.testing.assert_array_equal(beside_absence(track, s, absent),
+                                  [0, 0, 1, 0, 0, 1, 0, 0, 0])
+    np.testing.assert_array_equal(beside_absence(track, s, absent, reach_mm=0.5),
+                                  [0, 1, 1, 0, 0, 1, 0, 0, 0])
+    assert not beside_absence(track, s, np.zeros(len(s), bool)).any()
+
+
+def test_retract_lines_read_the_model_where_the_moving_retraction_tapers_the_bead(tmp_path):
+    """Seed 001's RetractTest on a direct drive: the moving retraction carries the bead
+    0.3 mm past the commanded stop, tapering to nothing. The station whose strip holds the
+    tip read 0.10-0.16 mm where the bead was 0-0.08 mm (103 um off on this scene, 7.0 um RMS
+    over the valid stations); beside the first station that sees no bead it is flagged
+    "end", and what stays valid reads the model at the true parameters."""
+    from calib.commands.simulate import simulate_scan, write_image
+    from fit.data import scan_from_table
+    from fit.model import build_model
+    from measure.pipeline import measure_scan
+    from patterns import retract
+
+    _, man = retract.generate("direct_drive", designs=(1,), n_steps=3)
+    values = {"pa.tau_s": 0.04, "nonlinear.n": 0.8}
+    img, _ = simulate_scan(man, "pa+nonlinear", values, "flatbed", profile=man.printer, dpi=600.0, seed=0,
+                           realism="none")
+    table = measure_scan(write_image(str(tmp_path / "scan.png"), img), man).table
+    table = table.subset(np.isin(table.track, [t.id for t in man.test_tracks()]))
+    model = build_model("pa+nonlinear")
+    pred = model.predict(scan_from_table(table, man, "scan").ctx, model.theta_from(values)[None])[0]
+    ok = table.valid & np.isfinite(pred)
+    r = table.width_mm[ok] - pred[ok]
+    assert ok.sum() > 0.7 * np.sum(table.width_mm > 0)
+    assert np.sqrt(np.mean(r ** 2)) < 0.006 and np.max(np.abs(r)) < 0.04
+    tip = (table.flag == "end") & (pred < 0.01)
+    assert tip.any()
