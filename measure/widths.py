@@ -114,6 +114,11 @@ BLOB_COAST_FACTOR = 1.2
 #: the bead's tip in its strip or its despeckling window (STRIP_MM / 2 + SPECK_MM / 2):
 #: flagged "end" (:func:`beside_absence`).
 TIP_REACH_MM = 0.35
+#: A track's blur takes its own level about the picture's blur plane from at least this
+#: many of its stations in the blur-free pass (:func:`_learn_blur_plane`).
+TRACK_BLUR_MIN_STATIONS = 20
+#: The blur is learned on stations at least this far (mm) from a bead end (measure_widths).
+BLUR_END_CLEAR_MM = 1.5
 CONTAMINATED_FLAGS = ("fit", "glare", "blob", "oblique", "faint")
 #: A valid station is flagged "oblique" when the fitted centres of its track's valid
 #: stations within +-ISOLATED_HALF_MM run across the track: slope |dc/ds| > OBLIQUE_SLOPE
@@ -297,11 +302,19 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     s0 = 1.0 / np.maximum(ppm_n, 1e-9)
     p0 = edges.initial_guess(t, y, pol, s0)
     height = np.asarray(smp.height_mm, float)
-    plane = _learn_blur_plane(t, y, p0, inside, flag == "", uv_c, ppm_n, height, nrm,
-                              prior=blur_prior_px, w_ref=w_ref, gap=gap) if fix_blur else None
+    # the blur is learned where a bead was commanded (a fit to the bare plate has any blur:
+    # the RetractTest's coasting halves, all on one side of the picture, tilted the plane by
+    # 1 px across it) and away from its ends (a round cap or a blob is crossed at a slant)
+    steady = (flag == "") & ~(w_nom <= 0)
+    if manifest is not None:
+        steady &= ~_near_bead_ends(manifest, smp, BLUR_END_CLEAR_MM)
+    plane, track_blur = _learn_blur_plane(t, y, p0, inside, steady, uv_c, ppm_n, height, nrm,
+                                          prior=blur_prior_px, w_ref=w_ref, gap=gap,
+                                          track=smp.track) if fix_blur else (None, None)
     if plane is not None:
         p1 = p0.copy()
-        p1[:, 5] = np.clip(plane[0] + plane[1] * uv_c[:, 0] + plane[2] * uv_c[:, 1], 0.3, None) / ppm_n
+        p1[:, 5] = np.clip(plane[0] + plane[1] * uv_c[:, 0] + plane[2] * uv_c[:, 1] + track_blur, 0.3,
+                           None) / ppm_n
         wts = (inside & _clear_of_neighbour(t, w_ref, gap, p1[:, 5])).astype(float)
         fit = edges.fit_profiles(t, y, p1, fixed_s=True, weights=wts)
     else:
@@ -655,7 +668,7 @@ def _clear_of_neighbour(t, w_ref, gap, blur_mm):
 
 
 def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals, prior=None, w_ref=None,
-                      gap=None):
+                      gap=None, track=None):
     """The blur plane s_px(u, v) from a blur-free pass over (up to 3000 of) the stations
     (``prior``: a plane from elsewhere in the image, see :func:`_blur_plane`); with the
     beads' widths ``w_ref`` and clearances ``gap`` (mm), a second pass keeps the profiles
@@ -675,7 +688,20 @@ def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals,
                                   fixed_s=False)
     blur_px = fit1.params[:, 5] * ppm_n[sub]
     ok1 = fit1.ok & usable[sub] & (fit1.width > 4 * fit1.params[:, 5])
-    return _blur_plane(uv_c[sub], blur_px, fit1, ok=ok1, prior=prior)
+    plane = _blur_plane(uv_c[sub], blur_px, fit1, ok=ok1, prior=prior)
+    if plane is None or track is None:
+        return plane, np.zeros(n)
+    # each track's own level about the plane: the edge of a taller bead is softer (its
+    # rounded flank), and a blur too small reads the bead wide (seed 001's RetractTest,
+    # heights 0.10-0.35 mm line by line: +0.3 ... +9.7 um with one plane)
+    r = blur_px - (plane[0] + plane[1] * uv_c[sub, 0] + plane[2] * uv_c[sub, 1])
+    off = np.zeros(n)
+    trk = np.asarray(track)[sub]
+    for tid in np.unique(trk[ok1]):
+        k = ok1 & (trk == tid) & np.isfinite(r)
+        if k.sum() >= TRACK_BLUR_MIN_STATIONS:
+            off[np.asarray(track) == tid] = float(np.median(r[k]))
+    return plane, off
 
 
 def _with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True):
@@ -783,6 +809,17 @@ def bead_ends_mm(track, step_mm: float = 0.05) -> np.ndarray:
         k = np.flatnonzero(on[1:] != on[:-1])
         ends += list(0.5 * (ss[k] + ss[k + 1]))
     return np.unique(np.round(ends, 9))
+
+
+def _near_bead_ends(manifest, smp, reach_mm: float) -> np.ndarray:
+    """Stations within ``reach_mm`` of a bead end of their track (:func:`bead_ends_mm`)."""
+    out = np.zeros(len(smp), bool)
+    for tid in np.unique(smp.track):
+        on = np.flatnonzero(smp.track == tid)
+        ends = bead_ends_mm(manifest.track(int(tid)))
+        d = np.min(np.abs(smp.s_mm[on][:, None] - ends[None, :]), axis=1)
+        out[on] = d < reach_mm
+    return out
 
 
 def _at_end(manifest, smp, w_meas, w_ref, blur_mm=None):

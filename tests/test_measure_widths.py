@@ -699,3 +699,29 @@ def test_retract_lines_read_the_model_where_the_moving_retraction_tapers_the_bea
     assert np.sqrt(np.mean(r ** 2)) < 0.006 and np.max(np.abs(r)) < 0.04
     tip = (table.flag == "end") & (pred < 0.01)
     assert tip.any()
+
+
+def test_lines_of_different_heights_read_their_width_with_their_own_blur(tmp_path):
+    """Seed 001's RetractTest design 1 varies the layer height line by line (0.11-0.30 mm
+    here): a taller bead's rounded flank is a softer edge, and an edge pair fitted with a
+    blur too small reads the bead wide. With one blur plane learned over every station
+    (the coasting halves' bare plate included), the lines read +0.6 ... +7.8 um; with the
+    plane learned where a bead was commanded, away from its ends, and each track's own
+    level about it, within 0.2 um."""
+    from calib.commands.simulate import simulate_scan, write_image
+    from measure.pipeline import measure_scan
+    from patterns import retract
+
+    _, man = retract.generate("direct_drive", designs=(1,), n_steps=6)
+    heights = [float(np.nanmean(t.height_mm)) for t in man.test_tracks()]
+    assert max(heights) - min(heights) > 0.15
+    img, _ = simulate_scan(man, "pa+nonlinear", {"pa.tau_s": 0.04, "nonlinear.n": 0.8}, "flatbed",
+                           profile=man.printer, dpi=600.0, seed=0, realism="none")
+    table = measure_scan(write_image(str(tmp_path / "scan.png"), img), man).table
+    truth = img.truth.widths
+    true_w = {(int(k), round(float(s), 3)): w for k, s, w in zip(truth.track, truth.s_mm, truth.width_mm)}
+    for tr in man.test_tracks():
+        ok = (table.track == tr.id) & table.valid
+        assert ok.sum() > 50
+        err = table.width_mm[ok] - [true_w[(tr.id, round(float(s), 3))] for s in table.s_mm[ok]]
+        assert abs(np.mean(err)) < 0.0015, (np.nanmean(tr.height_mm), np.mean(err))
