@@ -195,3 +195,28 @@ def test_truth_json_round_trip(tmp_path, manifest, phone):
         load_scan_truth(tmp_path / "bad.json")
     with pytest.raises(UserError, match="does not exist"):
         load_scan_truth(tmp_path / "missing.json")
+
+
+def test_a_bending_width_is_drawn_along_its_curve_not_the_stations_chords():
+    """Station widths of a decay w = 0.4 + 0.5 exp(-s / 0.8) mm every 0.25 mm: between the
+    stations the bead is drawn along the monotone cubic through them (within 1 um of the
+    decay), not along their chords (up to 4 um above it); a straight run stays linear, and
+    a width falling to zero does not overshoot."""
+    from measure.render import _curved_spans, _station_curve
+
+    s = np.arange(0.0, 6.01, 0.25)
+    w = 0.4 + 0.5 * np.exp(-s / 0.8)
+    tab = (s, w)
+    curve = _curved_spans(s, w)
+    x = np.linspace(0.0, 6.0, 601)
+    truth = 0.4 + 0.5 * np.exp(-x / 0.8)
+    drawn = _station_curve(x, tab, curve)
+    chords = np.interp(x, s, w)
+    assert np.max(np.abs(drawn - truth)) < 0.001
+    assert np.max(chords - truth) > 0.003
+    flat = np.full(len(s), 0.45)
+    assert _curved_spans(s, flat) is None
+    np.testing.assert_allclose(_station_curve(x, (s, flat), None), 0.45)
+    stop = np.where(s < 3.0, 0.5, 0.0)
+    ws = _station_curve(x, (s, stop), _curved_spans(s, stop))
+    assert ws.max() <= 0.5 + 1e-12 and ws.min() >= 0.0
