@@ -630,6 +630,24 @@ def test_linked_stations_errors_do_correlate_and_the_fit_links_only_adjacent_one
     assert np.all(rho[new] == 0.0)
 
 
+def _read_at_the_truth(man, dpi, tmp_path):
+    """Print ``man`` on the virtual direct drive (pa 0.04 s + nonlinear n 0.8), picture it
+    on a flatbed at ``dpi``, measure it; the test tracks' table and the model's prediction
+    through the measurement's kernel at the truth (mm)."""
+    from calib.commands.simulate import simulate_scan, write_image
+    from fit.data import scan_from_table
+    from fit.model import build_model
+    from measure.pipeline import measure_scan
+
+    values = {"pa.tau_s": 0.04, "nonlinear.n": 0.8}
+    img, _ = simulate_scan(man, "pa+nonlinear", values, "flatbed", profile=man.printer, dpi=dpi, seed=0,
+                           realism="none")
+    table = measure_scan(write_image(str(tmp_path / "scan.png"), img), man).table
+    table = table.subset(np.isin(table.track, [t.id for t in man.test_tracks()]))
+    model = build_model("pa+nonlinear")
+    return table, model.predict(scan_from_table(table, man, "scan").ctx, model.theta_from(values)[None])[0]
+
+
 def test_start_stop_rings_read_the_model_where_the_bead_stops_starts_and_blobs(tmp_path):
     """Seed 001's StartStopTest on a direct drive: each ring's bead stops and starts inside
     the track (prime, drain, restore in place, draw, retract, drool, restore, cool). The
@@ -638,10 +656,6 @@ def test_start_stop_rings_read_the_model_where_the_bead_stops_starts_and_blobs(t
     the model (through the measurement's kernel) at the true parameters. Before the
     interior ends and the coasting blob rule: 61 um RMS over the valid stations, stations
     up to 0.8 mm off."""
-    from calib.commands.simulate import simulate_scan, write_image
-    from fit.data import scan_from_table
-    from fit.model import build_model
-    from measure.pipeline import measure_scan
     from measure.widths import bead_ends_mm
     from patterns import start_stop
 
@@ -650,13 +664,7 @@ def test_start_stop_rings_read_the_model_where_the_bead_stops_starts_and_blobs(t
     p = tr.params
     np.testing.assert_allclose(bead_ends_mm(tr), [0.0, 4.0, p["draw_start_s_mm"], p["drool_start_s_mm"],
                                                   p["drool_start_s_mm"] + 20.0, tr.length_mm], atol=0.03)
-    values = {"pa.tau_s": 0.04, "nonlinear.n": 0.8}
-    img, _ = simulate_scan(man, "pa+nonlinear", values, "flatbed", profile=man.printer, dpi=400.0, seed=0,
-                           realism="none")
-    table = measure_scan(write_image(str(tmp_path / "scan.png"), img), man).table
-    table = table.subset(np.isin(table.track, [t.id for t in man.test_tracks()]))
-    model = build_model("pa+nonlinear")
-    pred = model.predict(scan_from_table(table, man, "scan").ctx, model.theta_from(values)[None])[0]
+    table, pred = _read_at_the_truth(man, 400.0, tmp_path)
     ok = table.valid & np.isfinite(pred)
     r = table.width_mm[ok] - pred[ok]
     assert ok.sum() > 0.5 * np.sum(table.width_mm > 0)
@@ -684,20 +692,10 @@ def test_retract_lines_read_the_model_where_the_moving_retraction_tapers_the_bea
     holds widths far apart, and the picture shows the bead's round footprints); such
     stations are flagged "steep". What stays valid reads the model at the true parameters
     (0.5 um RMS, 1.9 um at most when written)."""
-    from calib.commands.simulate import simulate_scan, write_image
-    from fit.data import scan_from_table
-    from fit.model import build_model
-    from measure.pipeline import measure_scan
     from patterns import retract
 
     _, man = retract.generate("direct_drive", designs=(1,), n_steps=3)
-    values = {"pa.tau_s": 0.04, "nonlinear.n": 0.8}
-    img, _ = simulate_scan(man, "pa+nonlinear", values, "flatbed", profile=man.printer, dpi=600.0, seed=0,
-                           realism="none")
-    table = measure_scan(write_image(str(tmp_path / "scan.png"), img), man).table
-    table = table.subset(np.isin(table.track, [t.id for t in man.test_tracks()]))
-    model = build_model("pa+nonlinear")
-    pred = model.predict(scan_from_table(table, man, "scan").ctx, model.theta_from(values)[None])[0]
+    table, pred = _read_at_the_truth(man, 600.0, tmp_path)
     ok = table.valid & np.isfinite(pred)
     r = table.width_mm[ok] - pred[ok]
     assert ok.sum() > 0.7 * np.sum(table.width_mm > 0)
