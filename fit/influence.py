@@ -162,5 +162,8 @@ def offset_response(problem, theta, rel_step: float = 1e-4) -> tuple[list, np.nd
         Jw, one_w = W[:-1].T, W[-1]
         info = info + Jw.T @ Jw
         rhs.append(Jw.T @ one_w)
-    R = np.linalg.solve(info, np.array(rhs).T).T
+    # least squares, not solve: a parameter the widths do not move where it sits (spread's
+    # sigma at 0, flat prior) leaves info singular and has no response (bench_e2e seed 1:
+    # `pa+spread` raised "Singular matrix")
+    R = np.linalg.lstsq(info, np.array(rhs).T, rcond=None)[0].T
     return [problem.param_names[i] for i in free], R

@@ -77,6 +77,30 @@ def test_a_constant_width_follows_a_common_offset_one_for_one():
     assert R2[0, 0] == pytest.approx(1.0, rel=1e-3)
 
 
+class ConstAndDeadModel(ConstModel):
+    """w = c, plus a parameter that moves nothing (spread's sigma at 0 under a flat prior)."""
+    spec = "const+dead"
+
+    def __init__(self):
+        self.params = [Param("flow.w_mm", "mm", 0.5, 0.1, 1.0), Param("dead.x", "-", 0.0, 0.0, 1.0)]
+        self.param_names = ["flow.w_mm", "dead.x"]
+
+    def default_theta(self):
+        return np.array([0.5, 0.0])
+
+
+def test_a_parameter_the_widths_do_not_move_has_no_response_and_no_error():
+    """bench_e2e seed 1, `pa+spread` with sigma at 0: the information matrix was singular and
+    the fit chain raised "Singular matrix". The width still follows the offset one for one;
+    the dead parameter does not respond."""
+    pb = JointProblem([_scan()], [ConstAndDeadModel()], NoiseOptions(ar1=False, relative=False))
+    theta = np.array(fit_map(pb).theta, dtype=float)
+    theta[pb.param_names.index("dead.x")] = 0.0
+    names, R = offset_response(pb, theta)
+    assert names == ["flow.w_mm", "dead.x"]
+    assert R[0, 0] == pytest.approx(1.0, rel=1e-6) and R[0, 1] == 0.0
+
+
 def test_the_interval_carries_the_calibrations_offset_doubt():
     """Posterior sd s_post of c, the calibration knows the offset to s_b (2 um): the widened
     95 % interval's half-width is 1.96 sqrt(s_post^2 + s_b^2) (a Gaussian convolved with the
