@@ -43,7 +43,7 @@ from bench.common import Row
 PROFILE = "direct_drive"
 #: seconds of the print before the test track that the fit simulates (see measured_scan)
 PAD_S = 5.0
-#: truth spec -> (values, spiral keywords, fitted models)
+#: truth spec -> (values, the pattern's keywords (spiral step unless the key names another), fitted models)
 CASES = {
     "pa": ({"pa.tau_s": 0.043},
            {"speeds_mm_s": (20.0,), "n_steps": 6, "step_s": (3.0,), "widths_mm": (0.35, 0.8)},
@@ -105,7 +105,8 @@ def _z(est: tuple, truth: float) -> float:
 
 def _truth_camera(case: str) -> tuple[str, str, str]:
     """(truth spec, camera, printer profile) of a CASES key: "pa", "pa, phone",
-    "spec, camera, profile" or "spec, camera, profile, realism" (see :func:`_realism`)."""
+    "spec, camera, profile", "spec, camera, profile, realism" (see :func:`_realism`) or
+    "spec, camera, profile, realism, pattern" (see :func:`_pattern`)."""
     parts = [p.strip() for p in case.split(",")] + ["", ""]
     return parts[0], parts[1] or "flatbed", parts[2] or PROFILE
 
@@ -114,6 +115,17 @@ def _realism(case: str) -> str:
     """The phenomena a CASES key renders: its fourth part with "+" for ",", default "all"."""
     parts = [p.strip() for p in case.split(",")]
     return parts[3].replace("+", ",") if len(parts) > 3 and parts[3] else "all"
+
+
+def _pattern(case: str):
+    """The patterns module a CASES key prints: its fifth part (a `calib pattern` name),
+    default the spiral step."""
+    from patterns import retract, spiral_step, start_stop, stop_mid_path
+
+    parts = [p.strip() for p in case.split(",")]
+    name = parts[4] if len(parts) > 4 and parts[4] else "spiral-step"
+    return {"spiral-step": spiral_step, "retract": retract, "start-stop": start_stop,
+            "stop-mid-path": stop_mid_path}[name]
 
 
 def _log(msg):
@@ -127,13 +139,12 @@ def measured_scan(case: str, seed: int, realism: str | None = None):
     from calib.commands.simulate import simulate_scan, write_image
     from fit.data import scan_from_table
     from measure.pipeline import measure_scan
-    from patterns import spiral_step
     from patterns.profile import load_profile
 
-    values, spiral, _ = CASES[case]
+    values, pattern_kw, _ = CASES[case]
     spec, camera, profile = _truth_camera(case)
     prof = load_profile(profile)
-    _, man = spiral_step.generate(prof, **spiral)
+    _, man = _pattern(case).generate(prof, **pattern_kw)
     rendered, _ = simulate_scan(man, spec, values, camera, profile=prof, dpi=600.0, seed=seed,
                                 realism=realism, tilt_deg=35.0)
     with tempfile.TemporaryDirectory() as d:

@@ -15,7 +15,8 @@ CSV columns (README "Widths CSV"):
                  missing, glare, edge, fit, neighbour, end, isolated: a valid-looking
                  station among failed fits, oblique: what was found runs across the
                  track, a string or another line, steep: the width changes along the
-                 track faster than a strip can read, ...)
+                 track faster than a strip can read, background: the plate beside the
+                 bead is not the plate (a logo, a sticker), ...)
     blur_mm      optional: the edge blur (Gaussian sd, mm across the track) the width was
                  read with; empty when unknown (tables written before it, truths)
     light_angle_deg  optional: angle (deg, 0-90) between the station's flank normal and the

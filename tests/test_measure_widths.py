@@ -1,4 +1,5 @@
 """Width accuracy, honest uncertainty and flags on renders with known widths."""
+import cv2
 import numpy as np
 import pytest
 
@@ -744,3 +745,88 @@ def test_lines_of_different_heights_read_their_width_with_their_own_blur(tmp_pat
         assert ok.sum() > 50
         err = table.width_mm[ok] - [true_w[(tr.id, round(float(s), 3))] for s in table.s_mm[ok]]
         assert abs(np.mean(err)) < 0.0015, (np.nanmean(tr.height_mm), np.mean(err))
+
+
+def test_beads_over_a_plate_logo_are_background_not_missing_and_not_a_width():
+    """A plate logo or a sticker under the beads (issue #10 item 5): against a mid-grey
+    print on the plate the beads' shaded flanks stand out dark and the edge pair takes them
+    for no bead at all. Those stations are flagged "background" (neither a width nor an
+    absence: the reference calibrated neither against that background) and the rest of
+    the scene is untouched. The patch is the same scene rendered on the dark and on the
+    light plate, mixed half and half inside a 10 x 11 mm rectangle across two tracks (the
+    bead's pixels are the same in both renders, so this is a render on a mid-grey plate).
+    Without the rule, all 70 stations on the patch were called missing: zero-width data."""
+    import measure.widths as mw
+    from measure.camera import Camera
+    from measure.render import render
+    man = scene_manifest()
+    cam = Camera.flatbed(scene_region(man), dpi=400)
+    dark, light = (render(man, None, cam, seed=4, plate=p, realism="profile", clutter=False)
+                   for p in ("dark", "light"))
+    W, H = cam.image_size
+    uu, vv = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    xy = cam.unproject(np.column_stack([uu.ravel(), vv.ravel()])).reshape(H, W, 2)
+    patch = (xy[..., 0] > 40) & (xy[..., 0] < 50) & (xy[..., 1] > 27) & (xy[..., 1] < 38)
+    mixed = np.round(0.5 * light.image.astype(float) + 0.5 * dark.image.astype(float)).astype(np.uint8)
+    img = np.where(patch[..., None], mixed, dark.image)
+    g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+    reg = register(g, man)
+    on = lambda tb: np.isin(tb.track, (2, 3)) & (tb.x_mm > 40.5) & (tb.x_mm < 49.5)   # noqa: E731
+    far = lambda tb: (tb.x_mm < 37) | (tb.x_mm > 53)                                     # noqa: E731
+    tb = measure_widths(g, man, reg, color=img).table
+    assert on(tb).sum() > 60
+    assert not tb.valid[on(tb)].any() and (tb.flag[on(tb)] == "missing").sum() == 0
+    assert (tb.flag[on(tb)] == "background").mean() > 0.9
+    assert tb.valid[far(tb)].mean() > 0.95 and not (tb.flag[far(tb)] == "background").any()
+    # the contrast: without the rule the printed beads on the patch are "missing"
+    old = mw.BACKGROUND_SHIFT
+    try:
+        mw.BACKGROUND_SHIFT = np.inf
+        tb0 = measure_widths(g, man, reg, color=img).table
+    finally:
+        mw.BACKGROUND_SHIFT = old
+    assert (tb0.flag[on(tb0)] == "missing").mean() > 0.5
+
+
+def test_a_grey_stroke_where_a_wide_ring_coasts_is_not_a_bead_of_this_plastic():
+    """Presence by colour counts the width a station claims, not only the commanded one:
+    on the virtual StartStopTest (flatbed, every phenomenon, seed 0) a grey plate letter's
+    1.2 mm stroke under a coasting stretch (commanded 0) of a 1.6 mm ring read as a valid
+    1.2 mm bead, the plate's colour at its centre (0-0.07 of the way to the bead's): with
+    the commanded width 0, the colour test asked for nothing. Here: orange plastic, a
+    colour axis (R - B) and a warm grey stroke 1.2 mm wide along the coasting half of track
+    5, nearer the plate's colour than the bead's on that axis (the old test,
+    with the commanded width, let it through); the printed half and every other track stay
+    valid."""
+    from measure.camera import Camera
+    from measure.contrast import Channel, sample_colour
+    from measure.render import render
+    man = scene_manifest()
+    man.tracks[5] = Track(id=5, kind="test", points_mm=[[20, 45], [45, 45], [45.01, 45], [80, 45]],
+                          width_mm=[1.6, 1.6, 0.0, 0.0], height_mm=[0.2] * 4, flow_mm3_s=[2.0, 2.0, 0.0, 0.0])
+    cam = Camera.flatbed(scene_region(man), dpi=400)
+    r = render(man, None, cam, seed=1, clutter=False, realism="grain")      # orange plastic
+    W, H = cam.image_size
+    uu, vv = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    xy = cam.unproject(np.column_stack([uu.ravel(), vv.ravel()])).reshape(H, W, 2)
+    band = ((xy[..., 0] > 55) & (xy[..., 0] < 65) & (np.abs(xy[..., 1] - 45) < 0.6)).astype(np.float32)
+    band = cv2.GaussianBlur(band, (0, 0), 1.0)[..., None]
+    img = np.round(r.image * (1 - band) + np.array([125.0, 140.0, 155.0]) * band).astype(np.uint8)
+    g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+    reg = register(g, man)
+    axis = np.array([-1.0, 0.0, 1.0])
+    level = lambda pts: float(np.median(sample_colour(img, *reg.project(pts).T) @ axis))   # noqa: E731
+    xs = np.linspace(22, 78, 40)
+    bead = level(np.column_stack([xs, np.full_like(xs, 25.0)]))
+    plate = level(np.column_stack([xs, np.full_like(xs, 27.5)]))
+    ch = Channel(axis, 10.0, 50.0, False, plate_level=plate, bead_level=bead)
+    assert ch.tells_presence and bead - plate > 0.3
+    tb = measure_widths(g, man, reg, color=img, colour_axis=ch).table
+    stroke = (tb.track == 5) & (tb.x_mm > 56) & (tb.x_mm < 64)
+    assert stroke.sum() > 25
+    assert not tb.valid[stroke].any() and (tb.flag[stroke] == "missing").mean() > 0.9
+    printed = (tb.track == 5) & (tb.x_mm > 22) & (tb.x_mm < 43)
+    assert tb.valid[printed].mean() > 0.95 and tb.valid[tb.track < 5].mean() > 0.95
+    # grey alone takes the stroke for a 1.2 mm bead: what the colour test is there for
+    tb0 = measure_widths(g, man, reg).table
+    assert tb0.valid[stroke].mean() > 0.9 and np.all(np.abs(tb0.width_mm[stroke] - 1.2) < 0.05)
