@@ -18,7 +18,9 @@ or fewer; ``CALIB_BENCH_E2E_SPARKLE_SEEDS`` for the fourth, the back-pressure pr
 photographed by the phone on a plate that sparkles (measure/phenomena.py), default 6 or
 fewer; ``CALIB_BENCH_E2E_DEMO_SEEDS`` for the fifth, `make demo`'s own setup (the Bowden
 print on a flatbed with no phenomena, fitted with the demo's final model), default 10 or
-fewer; 2 processes):
+fewer; ``CALIB_BENCH_E2E_PATTERN_SEEDS`` for the seed-001 patterns, the RetractTest and the
+StartStopTest on a direct drive with a nonlinear nozzle, default 4 or fewer each (a
+StartStopTest fit takes ~9 min); 2 processes):
 - the share of seeds whose 90 % interval holds the truth, for tau of `pa+spread(+scan_bias)`
   and for tau, Kb, w_sat of `pa+backpressure+spread+scan_bias` (80-97 %; scan_bias with the
   prior `calib fit` gives it from the measurement's calibration; binomial sd at 90 % with 40 seeds
@@ -86,6 +88,16 @@ CASES["pa+backpressure, phone, direct_drive, all+sparkle"] = CASES["pa+backpress
 # errors and the width offset's doubt (fit/offset_envelope.py)
 DEMO = "pa+thermal+backpressure, flatbed, adventurer3, none"
 CASES[DEMO] = (CASES["pa+thermal+backpressure, flatbed, adventurer3"][0], {}, ("pa+backpressure+thermal",))
+# The seed-001 patterns (issue #10): the RetractTest (designs 1 and 4, 3 lines each: beads
+# of different heights, and of different speeds at one height) and the StartStopTest, on
+# the direct drive with a nonlinear nozzle, as in docs/MEASUREMENT.md "What lies under and
+# beside the bead": where plate print passed for bead and the fit said chi2_nu 16 and 156
+PATTERN_TRUTH = {"pa.tau_s": 0.04, "nonlinear.n": 0.8}
+PATTERN_MODELS = ("pa+nonlinear+spread+scan_bias",)
+RETRACT = "pa+nonlinear, flatbed, direct_drive, all, retract"
+START_STOP = "pa+nonlinear, flatbed, direct_drive, all, start-stop"
+CASES[RETRACT] = (PATTERN_TRUTH, {"designs": (1, 4), "n_steps": 3}, PATTERN_MODELS)
+CASES[START_STOP] = (PATTERN_TRUTH, {}, PATTERN_MODELS)
 #: seconds of the print before the test track the fit simulates, where PAD_S is too short:
 #: thermal ooze (25 s) still acts when the test track starts
 PAD_S_CASE = {"pa+thermal+backpressure, flatbed, adventurer3": 60.0, DEMO: 60.0}
@@ -259,10 +271,12 @@ def run() -> list[Row]:
     n_bw = int(os.environ.get("CALIB_BENCH_E2E_BOWDEN_SEEDS", str(min(n, 10))))
     n_sp = int(os.environ.get("CALIB_BENCH_E2E_SPARKLE_SEEDS", str(min(n, 6))))
     n_demo = int(os.environ.get("CALIB_BENCH_E2E_DEMO_SEEDS", str(min(n, 10))))
+    n_pat = int(os.environ.get("CALIB_BENCH_E2E_PATTERN_SEEDS", str(min(n, 4))))
     bowden = "pa+thermal+backpressure, flatbed, adventurer3"
     sparkle = "pa+backpressure, phone, direct_drive, all+sparkle"
     # the slow fits first, so the two workers finish together
-    jobs = [(bowden, s) for s in range(n_bw)] + [(DEMO, s) for s in range(n_demo)] + \
+    jobs = [(START_STOP, s) for s in range(n_pat)] + [(RETRACT, s) for s in range(n_pat)] + \
+        [(bowden, s) for s in range(n_bw)] + [(DEMO, s) for s in range(n_demo)] + \
         [(sparkle, s) for s in range(n_sp)] + \
         [("pa+backpressure", s) for s in range(n_bp)] + [("pa, phone", s) for s in range(n_ph)] + \
         [("pa", s) for s in range(n)]

@@ -37,6 +37,8 @@ NOISY_SD_SCALE = 2.0
 NOISY_SD_FLOOR_MM = 0.005
 #: Share of ``faint`` stations (measure/widths.py DETECTABLE_SNR) above which a line says so.
 FAINT_WARN_FRACTION = 0.05
+#: Share of ``background`` stations (over print on the plate) above which a line says so.
+BACKGROUND_WARN_FRACTION = 0.05
 
 
 class MeasureRefused(UserError):
@@ -130,6 +132,12 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
                         f"contrast is under {DETECTABLE_SNR:g}x the plate texture's; grey on the QA overlay): "
                         "neither their widths nor their absence is used; a plain plate, even light or a "
                         "flatbed scan reads them")
+    off_plate = float(np.mean(table.flag == "background")) if len(table) else 0.0
+    if off_plate >= BACKGROUND_WARN_FRACTION:
+        warnings.append(f"{off_plate:.0%} of the samples have something other than the bare plate beside the "
+                        "bead (print on the plate, a sticker, a blob: red on the QA overlay, flag 'background'): "
+                        "neither their widths nor their absence is used; where it is the plate's print, place "
+                        "the pattern on a plain part of the plate")
     if channel.used and channel.chroma_restored:
         # the beads differ from the plate mostly in colour and this file kept a quarter of
         # it: on the light-plate render (every phenomenon, JPEG 70) the widths scatter

@@ -139,8 +139,10 @@ def test_a_picture_of_something_else_is_refused_in_one_line_with_the_overlay(tmp
     # its along-track sd says so (0.076 mm median since the strips are despeckled and 356
     # stations across the lines are valid, 0.36-0.46 mm with 167; 1 LSB of noise moved the
     # stations 0.004-0.019 mm along their lines, 0.1-0.5 mm before), where the spiral's says
-    # 0.014 mm (its stations moved 2-5 um)
-    ("StartStopTestPLA1.jpg", "StartStopTestPLA1_Kf10_Kb20_Re10_RPv.g", 0.09, (0.05, 0.5)),
+    # 0.014 mm (its stations moved 2-5 um). Since partial reads off their track's line are
+    # flagged (measure/widths.py OFF_PATH, session 44) the stations across the lines agree
+    # better and it says 0.025 mm, within those 1-LSB moves
+    ("StartStopTestPLA1.jpg", "StartStopTestPLA1_Kf10_Kb20_Re10_RPv.g", 0.09, (0.01, 0.5)),
 ])
 def test_realdata_photos_register_without_points(photo, gcode, max_residual_mm, along_sd_mm, tmp_path):
     from measure.pipeline import measure_scan
@@ -160,3 +162,7 @@ def test_realdata_photos_register_without_points(photo, gcode, max_residual_mm, 
     assert along_sd_mm[0] <= along_sd < along_sd_mm[1]
     # a user is told when the pose holds the stations along their lines only loosely
     assert any("along their lines only to" in w for w in res.summary["warnings"]) == (along_sd >= 0.05)
+    # StartStopTestPLA1 lies over the plate's FLASHFORGE and CAUTION print (10 % of its
+    # stations 'background'): the user is told
+    if photo.startswith("StartStopTestPLA1"):
+        assert any("other than the bare plate beside the bead" in w for w in res.summary["warnings"])
