@@ -133,9 +133,8 @@ BLUR_END_CLEAR_MM = 1.5
 #: sticker under or beside the bead. Against a bright background the bead's shaded flanks
 #: stand out dark and the width the scan's reference calibrated no longer holds: on a
 #: virtual RetractTest (600 dpi flatbed, every phenomenon, seed 0) the 0.3 mm line read
-#: 0.17-0.23 mm for 3-4 mm at a time across a plate logo, with sds of 20-40 um, and a
-#: 0.55 mm "bead" on a logo's top edge where none was printed. Those stations lay
-#: 0.5-1.07 from the plate's level; over four scenes without a logo under a track
+#: 0.17-0.23 mm for 3-4 mm at a time across a plate logo, with sds of 20-40 um. Those
+#: stations lay 0.5-1.07 from the plate's level; over four scenes without a logo under a track
 #: (flatbed and phone, dark and light plates, every phenomenon) the largest was 0.42, the
 #: 99.9th percentile 0.07-0.19 (their medians 0.01-0.03). A real phone photo's plate is
 #: not that even: on realdata StartStopTestPLA1 (translucent PLA, contrast 0.24, a grained
@@ -631,9 +630,18 @@ def plate_surface(x_mm, y_mm, values, ok, passes: int = 4) -> np.ndarray:
     ``passes`` times without those beyond 4 robust sds (a logo or a sticker is a minority
     of the stations; uneven light and vignetting are smooth): the plate's level beside the
     beads (N,)."""
-    xc, yc = x_mm - np.median(x_mm[ok]), y_mm - np.median(y_mm[ok])
-    A = np.column_stack([np.ones_like(xc), xc, yc, xc * xc, xc * yc, yc * yc])
     keep = ok & np.isfinite(values)
+    if keep.sum() < 18:          # too few for a quadratic: the plate's median level
+        return np.full(len(values), float(np.median(values[keep])) if keep.any() else np.nan)
+    # the first fit without what stands far out of the levels' spread: a least-squares
+    # quadratic through a logo on 13 % of the stations bends to it, and its residuals'
+    # spread then keeps the logo in every refit
+    q25, med, q75 = np.percentile(values[keep], [25, 50, 75])
+    keep &= np.abs(values - med) <= 3 * max(q75 - q25, 1e-4)
+    if keep.sum() < 18:
+        return np.full(len(values), float(med))
+    xc, yc = x_mm - np.median(x_mm[keep]), y_mm - np.median(y_mm[keep])
+    A = np.column_stack([np.ones_like(xc), xc, yc, xc * xc, xc * yc, yc * yc])
     coef = np.zeros(A.shape[1])
     for _ in range(passes):
         if keep.sum() < A.shape[1] * 3:

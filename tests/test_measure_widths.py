@@ -853,3 +853,24 @@ def test_something_beside_a_missing_stretch_that_does_not_cover_the_path_is_not_
     beside = gone & (smp.s_mm > 22.5) & (smp.s_mm < 27.5)
     assert beside.sum() >= 15
     assert not tb.valid[beside].any()
+
+
+def test_the_plate_level_surface_ignores_a_logo_and_falls_back_to_the_median():
+    """measure.widths.plate_surface: a plate lit unevenly (a quadratic over the bed) with a
+    bright logo on 15 % of the stations: the surface is the plate's, within 1 % of the
+    contrast, and the logo's stations stand 0.4 off it; with fewer than 18 stations, the
+    median level."""
+    from measure.widths import background_shift, plate_surface
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(0, 100, 600), rng.uniform(0, 60, 600)
+    plate = 0.10 + 0.0008 * x - 0.0005 * y + 4e-6 * (x - 50) ** 2
+    logo = (x > 55) & (x < 75) & (y > 15) & (y < 50)
+    level = plate + 0.4 * logo + rng.normal(0, 0.002, 600)
+    ok = np.ones(600, bool)
+    got = plate_surface(x, y, level, ok)
+    assert 0.1 < logo.mean() < 0.2
+    assert np.max(np.abs(got - plate)) < 0.005
+    off = background_shift(x, y, np.column_stack([level, level]), np.full(600, 0.5), ok)
+    assert np.all(off[logo] > 0.7) and np.all(off[~logo] < 0.05)
+    few = plate_surface(x[:10], y[:10], level[:10], ok[:10])
+    assert np.allclose(few, np.median(level[:10]))
