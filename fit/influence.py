@@ -140,7 +140,9 @@ def influence(problem, theta, k: int = 0, rel_step: float = 1e-4) -> Influence:
     P = _prior_curvature(problem, theta, free, rel_step)
     M = whitening_matrix(sc, *_scan_noise(problem, theta, k, problem.predict(theta[None], k)[0, sc.order]))
     Jw = M @ J
-    A = np.linalg.solve(Jw.T @ Jw + P, Jw.T @ M)
+    # least squares for the reason given in offset_response: a parameter at a flat-prior
+    # bound where the widths do not move it (spread's sigma at 0) has no response
+    A = np.linalg.lstsq(Jw.T @ Jw + P, Jw.T @ M, rcond=None)[0]
     return Influence(names=[problem.param_names[i] for i in free], A=A, rows=np.asarray(sc.order), theta=theta)
 
 
@@ -151,19 +153,30 @@ def offset_response(problem, theta, rel_step: float = 1e-4) -> tuple[list, np.nd
     information summed over all scans (a shared parameter is held by the others too):
     R_k = (sum_j Jw_j^T Jw_j + P)^-1 Jw_k^T (M_k 1). Each whitening is one pass of the
     Kalman filter over a vector, so no (n, n) matrix is formed."""
+    return direction_response(problem, theta, [(k, np.ones(len(sc.order))) for k, sc in enumerate(problem.scans)],
+                              rel_step)
+
+
+def direction_response(problem, theta, directions, rel_step: float = 1e-4) -> tuple[list, np.ndarray]:
+    """:func:`offset_response` for width errors of any shape: ``directions`` [(k, e)], e
+    (n_valid of scan k,) the error of each valid station (``ScanData.order`` order, mm per
+    unit); returns (names, R (len(directions), len(names))), parameter units per unit."""
     theta = np.asarray(theta, dtype=float)
     free = [i for i, name in enumerate(problem.param_names) if not is_noise(name)]
     info = _prior_curvature(problem, theta, free, rel_step)
-    rhs = []
+    rhs = np.zeros((len(directions), len(free)))
     for k, sc in enumerate(problem.scans):
+        mine = [i for i, (kk, _) in enumerate(directions) if kk == k]
         J = _jacobian(problem, theta, k, free, rel_step)
-        W = _whiten_rows(sc, np.vstack([J.T, np.ones((1, len(sc.order)))]),
+        E = np.array([np.asarray(directions[i][1], dtype=float) for i in mine]).reshape(len(mine), len(sc.order))
+        W = _whiten_rows(sc, np.vstack([J.T, E]),
                          *_scan_noise(problem, theta, k, problem.predict(theta[None], k)[0, sc.order]))
-        Jw, one_w = W[:-1].T, W[-1]
+        Jw = W[:len(free)].T
         info = info + Jw.T @ Jw
-        rhs.append(Jw.T @ one_w)
+        if mine:
+            rhs[mine] = (Jw.T @ W[len(free):].T).T
     # least squares, not solve: a parameter the widths do not move where it sits (spread's
     # sigma at 0, flat prior) leaves info singular and has no response (bench_e2e seed 1:
     # `pa+spread` raised "Singular matrix")
-    R = np.linalg.lstsq(info, np.array(rhs).T, rcond=None)[0].T
+    R = np.linalg.lstsq(info, rhs.T, rcond=None)[0].T
     return [problem.param_names[i] for i in free], R

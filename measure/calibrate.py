@@ -123,6 +123,9 @@ class WidthCalibration:
     gain_drift_per_10s  the gain's linear change over 10 s, when fitted (calibrate)
     sections        per section: commanded width, median apparent width, its sd, stations
     section_floor_mm  sd added to every section's in the fit of eq. (1) (calibrate)
+    height_mm       the reference's layer height (mm): the offset holds for beads of this
+                    height (their flanks are half-rounds of it); fit/offset_envelope.py
+                    carries the doubt of the offset at the test tracks' other heights
     applied         whether the widths were corrected
     prior_ok        not applied only because the offset's sd exceeds MAX_OFFSET_SD_MM (the
                     reference settled, its gain is plausible): offset +- sd is still what
@@ -143,6 +146,7 @@ class WidthCalibration:
     gain_drift_per_10s: float = float("nan")
     sections: list = field(default_factory=list)
     section_floor_mm: float = 0.0
+    height_mm: float = float("nan")
     applied: bool = False
     prior_ok: bool = False
     glare_bracket_mm: tuple | None = None
@@ -377,7 +381,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     wider at the reference's heading than on average; it is taken out of b0 and its sd
     added in quadrature (a photo at an angle).
     """
-    cal = WidthCalibration()
+    cal = WidthCalibration(height_mm=float(height_mm))
     rows = []
     joint = {}
     if since_s is not None:

@@ -151,3 +151,69 @@ def test_a_map_fit_carries_the_doubt_in_its_covariance():
     info = widen_map_offset(pb, m, [{"scan": "scan", "calibration": {"applied": True, "offset_sd_mm": 0.002}}])
     assert m.cov[0, 0] == pytest.approx(v0 + 0.002 ** 2, rel=1e-6)
     assert info["sd_before"]["flow.w_mm"] == pytest.approx(math.sqrt(v0))
+
+
+def _two_heights(offset_mm=0.0, sd=0.005, n=400):
+    """Track 0 printed at 0.2 mm (the reference's height), track 1 at 0.1 mm whose widths
+    read ``offset_mm`` wide of the truth, 0.45 mm (the reference's offset does not hold there)."""
+    sc = _scan(n=n, sd=sd)
+    h = np.where(sc.table.track == 0, 0.2, 0.1)
+    sc.samples.height_mm[:] = h
+    sc.y_mm = sc.y_mm + np.where(h == 0.1, offset_mm, 0.0)
+    return sc
+
+
+def _calibration(offset_mm=-0.040, sd_mm=0.002, height_mm=0.2):
+    from measure.calibrate import calibrate
+
+    rng = np.random.default_rng(3)
+    nominal = np.repeat([1.0, 0.4, 1.0, 0.4], 40)
+    phys = nominal + (1 - 1.0) * height_mm * (1 - np.pi / 4)
+    width = phys + offset_mm + rng.normal(0, 0.002, len(nominal))
+    cal = calibrate(width, np.ones(len(nominal), bool), nominal, np.repeat(np.arange(4), 40),
+                    height_mm=height_mm).to_dict()
+    cal["offset_sd_mm"] = sd_mm
+    return cal
+
+
+def test_a_track_at_another_height_carries_its_own_offset_doubt():
+    """The calibration records its reference's layer height; a track printed at half of it
+    gets s_g = (|b0| + 2 sd) ln 2, none at the reference's own height; the constant width
+    responds to that track's offset by its share of the information (1/2 here: equal
+    stations and sds), so var(c) grows by s_b^2 + (s_g / 2)^2 (Laplace)."""
+    from fit.offset_envelope import height_doubts, widen_map_offset
+
+    cal = _calibration()
+    assert cal["height_mm"] == pytest.approx(0.2)
+    assert abs(cal["offset_mm"] + 0.040) < 0.002
+    sc = _two_heights()
+    pb = _problem(sc)
+    (groups,) = height_doubts(pb, [{"scan": "scan", "calibration": cal}])
+    assert len(groups) == 1
+    h, mask, s_g = groups[0]
+    assert h == pytest.approx(0.1) and mask.sum() == 200 and np.all(sc.table.track[sc.order][mask] == 1)
+    assert s_g == pytest.approx((abs(cal["offset_mm"]) + 2 * 0.002) * math.log(2.0))
+    m = fit_map(pb)
+    v0 = m.cov[0, 0]
+    info = widen_map_offset(pb, m, [{"scan": "scan", "calibration": cal}])
+    assert m.cov[0, 0] == pytest.approx(v0 + 0.002 ** 2 + (s_g / 2) ** 2, rel=1e-3)
+    assert info["height_sd_mm"] == {"scan": {"0.1": pytest.approx(s_g)}}
+    # all at the reference's height, or a calibration that does not say its height: no doubt
+    one = _problem(_scan())
+    assert height_doubts(one, [{"scan": "scan", "calibration": cal}]) == [[]]
+    assert height_doubts(pb, [{"scan": "scan", "calibration": {**cal, "height_mm": None}}]) == [[]]
+
+
+def test_the_widened_interval_holds_a_track_read_wide_at_another_height():
+    """The 0.1 mm track reads 25 um wide (the reference's offset, -40 um, is -15 there): the
+    posterior's interval of c misses the truth 0.45 by ~50 of its sds; the interval that
+    carries the height doubt holds it."""
+    from fit.offset_envelope import widen_map_offset
+
+    cal = _calibration()
+    pb = _problem(_two_heights(offset_mm=0.025))
+    m = fit_map(pb)
+    c, sd0 = m.theta[0], math.sqrt(m.cov[0, 0])
+    assert abs(c - 0.45) > 1.96 * sd0
+    widen_map_offset(pb, m, [{"scan": "scan", "calibration": cal}])
+    assert abs(c - 0.45) < 1.96 * math.sqrt(m.cov[0, 0])

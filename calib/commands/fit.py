@@ -131,15 +131,13 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         print(f"calib fit: {n}", file=sys.stderr)
     m = fit_map(problem, seed=seed, global_search=True)
     if map_only:
-        from fit.offset_envelope import widen_map_offset
+        from fit.offset_envelope import doubt_text, widen_map_offset
 
         m.model = model_spec
         # the calibration's doubt of the widths' offset, as the full fit carries it
         info = widen_map_offset(problem, m, states)
         if info:
-            sd = ", ".join(f"{v * 1000:.2g} um" for v in info["offset_sd_mm"].values())
-            print(f"calib fit: width calibration: the widths' common offset is known to +-{sd} and the model "
-                  "has no scan_bias; the sds carry it", file=sys.stderr)
+            print(f"calib fit: width calibration: {doubt_text(info)}; the sds carry it", file=sys.stderr)
         return m, problem
     res = fit_mcmc(problem, map_result=m, max_steps=max_steps, max_time_s=max_time_s, seed=seed,
                    progress=progress)
