@@ -20,7 +20,9 @@ fewer; ``CALIB_BENCH_E2E_DEMO_SEEDS`` for the fifth, `make demo`'s own setup (th
 print on a flatbed with no phenomena, fitted with the demo's final model), default 10 or
 fewer; ``CALIB_BENCH_E2E_PATTERN_SEEDS`` for the seed-001 patterns, the RetractTest and the
 StartStopTest on a direct drive with a nonlinear nozzle, default 4 or fewer each (a
-StartStopTest fit takes ~9 min); 2 processes):
+StartStopTest fit takes ~9 min); ``CALIB_BENCH_E2E_STOP_SEEDS`` for the stop-mid-path ooze
+test on the Bowden printer with every phenomenon, default 2 or fewer (~19 min a fit); 2
+processes):
 - the share of seeds whose 90 % interval holds the truth, for tau of `pa+spread(+scan_bias)`
   and for tau, Kb, w_sat of `pa+backpressure+spread+scan_bias` (80-97 %; scan_bias with the
   prior `calib fit` gives it from the measurement's calibration; binomial sd at 90 % with 40 seeds
@@ -98,9 +100,14 @@ RETRACT = "pa+nonlinear, flatbed, direct_drive, all, retract"
 START_STOP = "pa+nonlinear, flatbed, direct_drive, all, start-stop"
 CASES[RETRACT] = (PATTERN_TRUTH, {"designs": (1, 4), "n_steps": 3}, PATTERN_MODELS)
 CASES[START_STOP] = (PATTERN_TRUTH, {}, PATTERN_MODELS)
+# The stop-mid-path ooze test (seed 000, KISSlicer Preload) where ooze matters, on the Bowden
+# Adventurer 3 with every phenomenon: the print that `calib pattern stop-mid-path` makes
+STOP_MID_PATH = "pa+thermal+backpressure, flatbed, adventurer3, all, stop-mid-path"
+CASES[STOP_MID_PATH] = (CASES["pa+thermal+backpressure, flatbed, adventurer3"][0], {},
+                        ("pa+backpressure+thermal+spread+scan_bias",))
 #: seconds of the print before the test track the fit simulates, where PAD_S is too short:
 #: thermal ooze (25 s) still acts when the test track starts
-PAD_S_CASE = {"pa+thermal+backpressure, flatbed, adventurer3": 60.0, DEMO: 60.0}
+PAD_S_CASE = {"pa+thermal+backpressure, flatbed, adventurer3": 60.0, DEMO: 60.0, STOP_MID_PATH: 60.0}
 
 
 #: |z| of the 99 % interval's edge (Gaussian)
@@ -272,10 +279,12 @@ def run() -> list[Row]:
     n_sp = int(os.environ.get("CALIB_BENCH_E2E_SPARKLE_SEEDS", str(min(n, 6))))
     n_demo = int(os.environ.get("CALIB_BENCH_E2E_DEMO_SEEDS", str(min(n, 10))))
     n_pat = int(os.environ.get("CALIB_BENCH_E2E_PATTERN_SEEDS", str(min(n, 4))))
+    n_stop = int(os.environ.get("CALIB_BENCH_E2E_STOP_SEEDS", str(min(n, 2))))
     bowden = "pa+thermal+backpressure, flatbed, adventurer3"
     sparkle = "pa+backpressure, phone, direct_drive, all+sparkle"
     # the slow fits first, so the two workers finish together
-    jobs = [(START_STOP, s) for s in range(n_pat)] + [(RETRACT, s) for s in range(n_pat)] + \
+    jobs = [(STOP_MID_PATH, s) for s in range(n_stop)] + \
+        [(START_STOP, s) for s in range(n_pat)] + [(RETRACT, s) for s in range(n_pat)] + \
         [(bowden, s) for s in range(n_bw)] + [(DEMO, s) for s in range(n_demo)] + \
         [(sparkle, s) for s in range(n_sp)] + \
         [("pa+backpressure", s) for s in range(n_bp)] + [("pa, phone", s) for s in range(n_ph)] + \
