@@ -30,6 +30,7 @@ marginalising an offset whose prior the data do not narrow.
 
 A MAP fit (`--map-only`) gets the same in its Laplace covariance, C + sum_k s_k^2 R_k R_k^T
 (:func:`widen_map_offset`).
+
 The offset holds at the reference's layer height. A bead's flanks are half-rounds of its
 height (fit/geometry.py), and shading, translucency and glare on them set the offset, so a
 test track at another height has another offset, which no reference measured. Written
@@ -45,7 +46,8 @@ at a height more than SAME_HEIGHT_LN from the reference's gets its own offset o_
 s_g^2), s_g = (|b0| + 2 sd(b0)) |ln(h_g / h_ref)| (independent: xi differed per height),
 carried through its own response R_g (fit.influence.direction_response) like the common
 offset, whether or not the model has ``scan_bias`` (one b0 for all heights cannot take
-them). On that scan: s_g 29, 10, 21 um, tau's 95 % interval [0.0349, 0.0411].
+them). On that scan: s_g 29, 10, 21 um at 0.1125, 0.164, 0.3 mm; tau's 95 % interval (Laplace)
+[0.0347, 0.0413].
 
 Uncalibrated widths are not widened here: their doubt is the whole apparent-width offset
 (tens of um), and `calib fit` already says to add scan_bias (fit/measurement.py notes). The
