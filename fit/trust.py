@@ -321,9 +321,8 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
         advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
                   "missing effect, then fit the model it names")
     elif riders and any(r["param"].split("@")[0] in EXPORTED for r in riders):
-        advice = ("calibrate the widths: print the pattern with its width reference (the prime "
-                  "line of `calib pattern`) and scan it so the reference is measured, or give "
-                  "scan_bias.b0_mm a prior from a ruler line of known width (--priors)")
+        advice = _rider_advice([r for r in riders if r["param"].split("@")[0] in EXPORTED],
+                               (diag.get("measurement") or {}).get("scans") or [])
     elif at_bound:
         advice = ("the test did not constrain these values; print a pattern that does (other "
                   "speeds or widths) or widen the prior with --priors if the range is too narrow")
@@ -361,6 +360,42 @@ def residual_structure(problem, theta, n_null: int = 200, seed: int = 0) -> dict
             best = {"scan": sc.name, "covariate": scores[0].name, "score": float(scores[0].score),
                     "p_value": float(scores[0].p_value)}
     return best
+
+
+def _rider_advice(riders: list[dict], scans: list[dict]) -> str:
+    """What to do about exported values that ride the width offset (:func:`offset_riders`).
+
+    Uncalibrated widths: calibrate them. Calibrated ones: the width reference was measured
+    and the values still move outside their intervals within its doubt, so "calibrate" would
+    send the user round in a circle (on the Bowden spiral + stop-mid-path render, both
+    scans calibrated to +-3.9 / +-6.8 um, tau rode it: session 46); what narrows that doubt
+    is a cleaner reading of the reference, and the calibration block says what spoiled it.
+    """
+    if any(r["calibrated"] is False for r in riders):
+        return ("calibrate the widths: print the pattern with its width reference (the prime "
+                "line of `calib pattern`) and scan it so the reference is measured, or give "
+                "scan_bias.b0_mm a prior from a ruler line of known width (--priors)")
+    by_name = {s.get("scan"): (s.get("calibration") or {}) for s in scans}
+    causes = []
+    for r in riders:
+        scan = r["offset"].split("@")[1] if "@" in r["offset"] else (scans[0].get("scan") if scans else None)
+        cal = by_name.get(scan) or {}
+        if cal.get("glare_bracket_mm") and "glare" not in causes:
+            causes.append("glare")
+        if any("had not settled" in w for w in cal.get("warnings") or []) and "settle" not in causes:
+            causes.append("settle")
+    doubt = max(r["doubt_mm"] for r in riders)
+    names = ", ".join(dict.fromkeys(r["param"] for r in riders))
+    why = {"glare": "its reference was read in glare: scan or photograph with the light along the "
+                    "prime line, or print it in matte filament",
+           "settle": "its reference's flow had not settled (a long Bowden or thermal ooze): the "
+                     "sections' limits are extrapolated"}
+    told = "; ".join(why[c] for c in causes) or (
+        "scan it again flat at 1200 dpi, saved as PNG or TIFF, in even light, so the reference "
+        "reads closer")
+    return (f"the widths are calibrated, but {names} still moves outside its interval within the "
+            f"+-{1000 * doubt / 2:.1f} um the width reference knows the offset to; {told}; then "
+            f"fit again")
 
 
 def offset_riders(doc: dict, doubt_mm: float = OFFSET_DOUBT_MM, z: float = RIDE_Z) -> list[dict]:

@@ -306,3 +306,22 @@ def test_an_exported_value_that_rides_the_offset_is_refused():
     v = assess(doc)
     assert not v.trustworthy and "pa.tau_s rides the width offset" in v.problems[0]
     assert "calibrate the widths" in v.advice
+
+
+def test_a_value_riding_calibrated_widths_is_told_what_spoiled_the_reference():
+    """Calibrated widths (reference sd 5 um: doubt 10 um, which moves tau by ~2.3 sd) whose
+    exported value still rides the offset: the advice is not "calibrate" (they are) but what
+    the calibration block says spoiled the reference's reading."""
+    doc = _riding_doc(60.0, rider="pa.tau_s", b0_prior_sd=0.005)
+    cal = {"applied": True, "glare_bracket_mm": [-0.040, -0.048],
+           "warnings": ["width reference 1.00 mm still changes by +10 um beyond the end of its "
+                        "section (its settling time constant 1.6 s): the flow had not settled"]}
+    doc["diagnostics"]["measurement"] = {"scans": [{"scan": "scan0", "calibration": cal}]}
+    v = assess(doc)
+    assert not v.trustworthy and "pa.tau_s rides the width offset" in v.problems[0]
+    assert "calibrate the widths" not in v.advice and "+-5.0 um" in v.advice
+    assert "glare" in v.advice and "had not settled" in v.advice
+    # nothing named in the block: the generic way to a closer reading, and neither cause
+    doc["diagnostics"]["measurement"] = {"scans": [{"scan": "scan0", "calibration": {"applied": True}}]}
+    v = assess(doc)
+    assert "1200 dpi" in v.advice and "glare" not in v.advice and "settled" not in v.advice
