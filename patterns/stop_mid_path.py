@@ -23,6 +23,19 @@ q(t) = q0 exp(-t / tau), tau = 32 D^2 L l / d^4 * VE. Variants (one row each):
 
 The coasting part belongs to the track (zero-extrusion moves between TRACK/END_TRACK):
 that is where the ooze is measured.
+
+Widths: by default the lines alternate between 1.2 and 2 nozzle diameters (``width_mm``;
+KISSlicer's wizard prints one). The bead's back-pressure Kb w_sat tanh(w / w_sat) (seed
+001) is read along each ooze tail, whose width falls from the line's to 0; from 0.48 mm
+alone that is the curve's nearly straight start, where Kb and w_sat are one direction
+(Kb w_sat tanh(w / w_sat) ~ Kb w). Measured (session 46, Adventurer 3 Bowden truth: tau
+0.8 s, thermal 0.05 over 25 s, Kb 1, w_sat 0.8 mm; relative Cramer-Rao sds of tau, Kb,
+w_sat, thermal a and tau_s): one width 0.74 / 3.3 / 2.1 / 7.4 / 11 %, 0.48 and 0.8 mm
+0.26 / 2.0 / 1.2 / 2.6 / 8.6 %. Rendered (600 dpi flatbed, every phenomenon) and fitted
+with pa+backpressure+thermal+spread+scan_bias, the one-width print put w_sat on its 3 mm
+bound with a second mode within 10 BIC on both seeds tried; the two-width print on
+neither. The wide lines' flow is 2 x 2 / 1.2 ~ 3.3x the narrow ones' at one speed (6.1
+mm^3/s at 40 mm/s, h 0.2): within a common hot end's melt rate.
 """
 from __future__ import annotations
 
@@ -39,6 +52,8 @@ RAMP_SEGMENTS_PER_TAU = 8
 COAST_TAUS = 3.0
 WIPE_MM = 10.0
 VARIANTS = ("exp", "const", "wizard")
+#: default line widths in nozzle diameters, alternating over the lines (module docstring)
+DEFAULT_WIDTHS_DN = (1.2, 2.0)
 
 
 def exp_feed_ramp(v0_mm_s: float, tau_s: float, duration_s: float | None = None,
@@ -56,7 +71,8 @@ def exp_feed_ramp(v0_mm_s: float, tau_s: float, duration_s: float | None = None,
     return t, s, v
 
 
-def _rows(profile, speeds, taus, variants, steady_s, tau0, width_mm, h):
+def _rows(profile, speeds, taus, variants, steady_s, tau0, widths_mm, h):
+    """One dict per printed line; the widths (mm) alternate over the lines in order."""
     rows = []
     for v0 in speeds:
         for var in variants:
@@ -70,8 +86,9 @@ def _rows(profile, speeds, taus, variants, steady_s, tau0, width_mm, h):
                 else:
                     coast = WIPE_MM
                     label = f"{v0:g}mm/s wiper"
+                w = float(widths_mm[len(rows) % len(widths_mm)])
                 rows.append(dict(v0=v0, tau=tau, variant=var, steady_mm=v0 * steady_s, coast_mm=coast,
-                                 length_mm=v0 * steady_s + coast, label=label, group=f"{v0:g}"))
+                                 length_mm=v0 * steady_s + coast, label=label, group=f"{v0:g}", width_mm=w))
     return rows
 
 
@@ -84,6 +101,8 @@ def generate(profile, *, speeds_mm_s=(20.0, 40.0), tau_s=None, variants=VARIANTS
                  seed 000 estimate for this printer times 0.5, 1, 2
     variants     any of exp, const, wizard
     steady_s     printing time before the stop (s); default max(2 s, 4 tau), shortened to fit
+    width_mm     bead width (mm), or several that alternate over the lines in order;
+                 default DEFAULT_WIDTHS_DN nozzle diameters
     wizard_wait_s  wizard variant: wait after the wipe (s); the display (M117) says where
                  to hold the wiper card, see the module docstring
     """
@@ -107,10 +126,13 @@ def generate(profile, *, speeds_mm_s=(20.0, 40.0), tau_s=None, variants=VARIANTS
                 raise UserError(f"stop-mid-path: a feed ramp from {v0:g} mm/s with tau {tau:g} s needs "
                                 f"{v0 / tau:.0f} mm/s^2, more than the printer's {profile.max_accel_mm_s2:g}: "
                                 "use a larger --tau or lower --speeds")
-    w = float(width_mm or round(1.2 * profile.nozzle_diameter_mm, 2))
+    ws = ([float(x) for x in np.atleast_1d(width_mm)] if width_mm is not None
+          else [round(f * profile.nozzle_diameter_mm, 2) for f in DEFAULT_WIDTHS_DN])
+    if not ws or not all(np.isfinite(x) and x > 0 for x in ws):
+        raise UserError(f"stop-mid-path: --width must be > 0 mm, got {', '.join(f'{x:g}' for x in ws)}")
     max_w, _ = layout.max_content_mm(profile)
     want_steady = float(steady_s) if steady_s is not None else max(2.0, 4.0 * tau0)
-    probe = _rows(profile, speeds, taus, variants, 0.0, tau0, w, layer_height_mm)
+    probe = _rows(profile, speeds, taus, variants, 0.0, tau0, ws, layer_height_mm)
     room = max_w - 40.0 - max(r["coast_mm"] for r in probe)     # 40 mm: label column
     fit_steady = min(room / r["v0"] for r in probe)
     steady = want_steady if steady_s is not None else min(want_steady, fit_steady)
@@ -118,16 +140,18 @@ def generate(profile, *, speeds_mm_s=(20.0, 40.0), tau_s=None, variants=VARIANTS
         raise UserError(f"stop-mid-path: lines at {max(speeds):g} mm/s do not reach steady state on this "
                         "bed: reduce --speeds or --tau")
     params = {"speeds_mm_s": speeds, "tau_s": taus, "variants": variants, "steady_s": round(steady, 4),
-              "width_mm": w, "layer_height_mm": float(layer_height_mm), "wizard_wait_s": float(wizard_wait_s),
+              "width_mm": ws[0], "widths_mm": ws, "layer_height_mm": float(layer_height_mm),
+              "wizard_wait_s": float(wizard_wait_s),
               "tau_printer_guess_s": round(tau0, 4)}
-    rows = _rows(profile, speeds, taus, variants, steady, tau0, w, layer_height_mm)
+    rows = _rows(profile, speeds, taus, variants, steady, tau0, ws, layer_height_mm)
     frame = layout.place_rows(profile, NAME, rows, pitch_mm=5.0,
                               hint="reduce --speeds, --tau or --steady-s, or fewer --variants")
-    b = PatternBuilder(profile, NAME, params, layer_height_mm=layer_height_mm, line_width_mm=w)
+    b = PatternBuilder(profile, NAME, params, layer_height_mm=layer_height_mm, line_width_mm=ws[0])
     b.set_z(layer_height_mm)
     b.frame_prime(frame)
-    q0 = float(bead_area_mm2(w, layer_height_mm))
     for r in rows:
+        w = r["width_mm"]
+        q0 = float(bead_area_mm2(w, layer_height_mm))
         x0, y = r["start_xy"]
         xs = x0 + r["steady_mm"]
         tp = {"speed_mm_s": r["v0"], "variant": r["variant"], "width_mm": w,

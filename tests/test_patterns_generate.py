@@ -151,6 +151,27 @@ def test_stop_mid_path_feed_follows_exponential():
     assert np.abs(s_rel[late] - model[late]).max() < 0.05 * 40.0 * tau
 
 
+def test_stop_mid_path_widths_alternate_over_the_lines():
+    """Two widths (mm) alternate over the lines in print order; each line's commanded width,
+    E per mm (bead area A(w, h) / filament area) and flow (A v0, mm^3/s) are its own."""
+    from fit.geometry import bead_area_mm2
+
+    prof = load_profile("adventurer3")
+    _, m = PATTERNS["stop-mid-path"](prof, width_mm=(0.48, 1.0))
+    tests = m.test_tracks()
+    assert len(tests) == 10 and m.pattern["params"]["widths_mm"] == [0.48, 1.0]
+    assert [t.params["width_mm"] for t in tests] == [0.48, 1.0] * 5
+    tl = m.timeline
+    af = np.pi * prof.filament_diameter_mm ** 2 / 4
+    for t in tests[:2]:
+        w = t.params["width_mm"]
+        assert t.params["flow_mm3_s"] == pytest.approx(bead_area_mm2(w, 0.2) * t.params["speed_mm_s"])
+        on = (tl.track == t.id) & (tl.s_mm > 5.0) & (tl.s_mm < t.params["stop_s_mm"] - 5.0)
+        assert np.median(tl.ve_mm_s[on] / tl.v_mm_s[on]) * af == pytest.approx(bead_area_mm2(w, 0.2), rel=1e-3)
+    with pytest.raises(UserError, match="--width must be > 0"):
+        PATTERNS["stop-mid-path"](prof, width_mm=(0.48, float("nan")))
+
+
 def test_start_stop_restores_scale_with_the_filament_path():
     # seed 001's own sweep on the author's Adventurer 3; the advance is pressure times the
     # path's compliance, which grows with the Bowden length (seed 000: tau ~ L)

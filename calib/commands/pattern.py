@@ -62,7 +62,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     sp.add_argument("--wizard-wait-s", type=float, default=3.0,
                     help="wizard variant: wait after the wipe, s (default 3); the printer's display "
                          "says where to hold the wiper card (M117)")
-    sp.add_argument("--width", type=float, default=None, help="bead width, mm (default 1.2 x nozzle)")
+    sp.add_argument("--width", type=_floats, default=None,
+                    help="bead width, mm; several alternate over the lines (default 1.2 and 2 x "
+                         "nozzle: the bead's back-pressure needs two widths)")
     sp.add_argument("--layer-height", type=float, default=0.2, help="layer height, mm (default 0.2)")
 
     sp = sub.add_parser("retract", help="steady lines then a moving retraction (seed 001 RetractTest)",
