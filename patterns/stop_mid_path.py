@@ -33,9 +33,10 @@ alone that is the curve's nearly straight start, where Kb and w_sat are one dire
 w_sat, thermal a and tau_s): one width 0.74 / 3.3 / 2.1 / 7.4 / 11 %, 0.48 and 0.8 mm
 0.26 / 2.0 / 1.2 / 2.6 / 8.6 %. Rendered (600 dpi flatbed, every phenomenon) and fitted
 with pa+backpressure+thermal+spread+scan_bias, the one-width print put w_sat on its 3 mm
-bound with a second mode within 10 BIC on both seeds tried; the two-width print on
-neither. The wide lines' flow is 2 x 2 / 1.2 ~ 3.3x the narrow ones' at one speed (6.1
-mm^3/s at 40 mm/s, h 0.2): within a common hot end's melt rate.
+bound with a second mode within 10 BIC on both seeds tried; the two-width print on none
+of 4 (docs/TRUST.md, "The stop-mid-path print"). The wide lines need A(0.8, 0.2) /
+A(0.48, 0.2) ~ 1.7x the narrow ones' flow at one speed (6.1 mm^3/s at 40 mm/s, h 0.2):
+within a common hot end's melt rate.
 """
 from __future__ import annotations
 
