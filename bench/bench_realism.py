@@ -12,6 +12,16 @@ fraction of test-track stations; over all scenes: the share of printed markers f
 Where the picture's own width reference cannot calibrate the widths (a Bowden printer's
 reference does not settle; a light plate's JPEG), the same rows after the offset the fit
 finds (`scan_bias` fitted with the truth's own model: :func:`calibrated_by_fit`).
+
+Every scene is rendered on one seed (SEED) for the per-scene rows. One seed of a scene
+with every phenomenon is one plastic colour, one light, one glare streak: on the Bowden
+scene seeds 0-5 read bias +0.4 to -6.0 um with seed 3 the worst, and the light-plate JPEG
+read 21 um on seed 3 where seeds 1, 2 and 4 left the reference too loose to apply (38-41
+um apparent). So the scenes with every phenomenon are also rendered on SPREAD_SEEDS more
+seeds (``CALIB_BENCH_REALISM_SEEDS``, the count in all, default 3) and summarised: the
+median and the worst over the seeds of the widths a user gets (calibrated, or where the
+calibration is not applied, offset by the fit's ``scan_bias``) and how often the
+calibration was applied.
 """
 from __future__ import annotations
 
@@ -24,6 +34,9 @@ from bench.common import Row
 from calib.commands.simulate import write_image
 
 WIDTHS_MM = (0.25, 0.5, 1.0, 1.6)
+#: the seed of the per-scene rows, and the seeds the scenes with every phenomenon add
+SEED = 3
+SPREAD_SEEDS = (0, 1, 2, 4, 5, 6, 7, 8, 9)
 #: printer profile and truth of each printer kind
 PRINTERS = {"bowden": ("long_bowden", "bowden.toml"), "direct": ("direct_drive", "direct_drive.toml")}
 #: (label, camera, realism, plate, plastic, printer)
@@ -66,7 +79,7 @@ def scene(camera: str, realism: str, plate: str, plastic: str, seed: int, tilt_d
     return man, rendered
 
 
-def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opaque", seed: int = 3,
+def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opaque", seed: int = SEED,
              printer: str = "bowden") -> dict:
     from calib.errors import UserError
     from measure.pipeline import measure_scan
@@ -179,9 +192,47 @@ def ghost_valid(path, man, registration) -> float:
     return float(np.mean(m.table.valid[m.table.track == gid]))
 
 
+def used_widths(f: dict) -> dict:
+    """RMS and bias (mm) of the widths a user gets from one evaluation: calibrated, or offset
+    by the fit's ``scan_bias`` where the calibration was not applied (apparent otherwise)."""
+    b = f.get("by_fit")
+    return {"rms": b["rms"], "bias": b["bias"]} if b else {"rms": f["rms"], "bias": f["bias"]}
+
+
+def spread_rows(label: str, cam: str, per_seed: dict[int, dict]) -> list[Row]:
+    """Median and worst over seeds of one scene (``per_seed``: seed -> :func:`evaluate`)."""
+    target_rms = 0.025 if cam == "phone" else 0.010
+    seeds = sorted(per_seed)
+    use = {s: used_widths(per_seed[s]) for s in seeds}
+    rms = np.array([use[s]["rms"] for s in seeds])
+    bias = np.array([use[s]["bias"] for s in seeds])
+    n_cal = sum(bool(per_seed[s]["calibrated"]) for s in seeds)
+    tag = f"{label}, seeds {','.join(map(str, seeds))}"
+    ok = np.isfinite(rms)
+    med = float(np.median(rms[ok])) if ok.any() else np.nan
+    worst = int(np.nanargmax(np.where(ok, rms, -np.inf))) if ok.any() else 0
+    each = ", ".join(f"{s}: {use[s]['rms'] * 1000:.1f}{'' if per_seed[s]['calibrated'] else '*'}" for s in seeds)
+    rows = [Row("realism", f"{tag}: width RMS error, median (each, um; * = calibration not applied, "
+                f"offset by the fit's scan_bias: {each}; worst seed {seeds[worst]})", med, "mm",
+                f"<= {target_rms}", bool(np.isfinite(med) and med <= target_rms)),
+            Row("realism", f"{tag}: width RMS error, worst seed", float(rms[worst]) if ok.any() else np.nan, "mm",
+                f"<= {target_rms}", bool(ok.all() and np.nanmax(rms) <= target_rms))]
+    if cam == "flatbed":
+        ab = np.abs(bias)
+        each_b = ", ".join(f"{s}: {use[s]['bias'] * 1000:+.1f}" for s in seeds)
+        rows += [Row("realism", f"{tag}: |width bias|, median (each, um: {each_b})",
+                     float(np.nanmedian(ab)), "mm", "<= 0.005", bool(np.nanmedian(ab) <= 0.005)),
+                 Row("realism", f"{tag}: |width bias|, worst seed", float(np.nanmax(ab)), "mm", "<= 0.005",
+                     bool(np.isfinite(ab).all() and np.nanmax(ab) <= 0.005))]
+    rows.append(Row("realism", f"{tag}: the width reference's calibration applied", n_cal / len(seeds),
+                    "fraction", "", None))
+    return rows
+
+
 def run() -> list[Row]:
     rows: list[Row] = []
     found = expected = 0
+    n_seeds = max(1, int(os.environ.get("CALIB_BENCH_REALISM_SEEDS", "3")))
     for label, cam, realism, plate, plastic, printer in SCENES:
         f = evaluate(cam, realism, plate, plastic, printer=printer)
         target_rms = 0.025 if cam == "phone" else 0.010
@@ -214,6 +265,11 @@ def run() -> list[Row]:
                         bool(np.isfinite(f["ghost_valid"]) and f["ghost_valid"] <= 0.02)))
         found += f["markers"]
         expected += f["markers_expected"]
+        if realism.startswith("all") and n_seeds > 1:
+            per_seed = {SEED: f}
+            for sd in SPREAD_SEEDS[:n_seeds - 1]:
+                per_seed[sd] = evaluate(cam, realism, plate, plastic, seed=sd, printer=printer)
+            rows += spread_rows(label, cam, per_seed)
     rows.append(Row("realism", f"printed markers found over all {len(SCENES)} scenes", found / max(expected, 1),
                     "fraction", ">= 0.95", found / max(expected, 1) >= 0.95))
     return rows

@@ -1,0 +1,34 @@
+"""The realism bench's summary over seeds (bench/bench_realism.py spread_rows)."""
+import math
+
+from bench.bench_realism import spread_rows
+
+
+def _f(rms_um, bias_um, calibrated=True, by_fit=None):
+    return {"rms": rms_um / 1000, "bias": bias_um / 1000, "calibrated": calibrated,
+            "by_fit": None if by_fit is None else {"rms": by_fit[0] / 1000, "bias": by_fit[1] / 1000}}
+
+
+def test_spread_rows_take_the_fit_offset_where_the_calibration_was_not_applied():
+    per_seed = {3: _f(7.3, -6.0), 0: _f(4.1, 0.4), 5: _f(48.1, -47.9, calibrated=False, by_fit=(7.0, 4.5))}
+    rows = {r.metric: r for r in spread_rows("flatbed, all, Bowden", "flatbed", per_seed)}
+    by = {k.split("seeds 0,3,5: ")[1]: r for k, r in rows.items()}
+    med = next(r for k, r in by.items() if k.startswith("width RMS error, median"))
+    worst = by["width RMS error, worst seed"]
+    # seed 5's apparent 48 um is replaced by its widths after the fit's offset (7.0 um)
+    assert math.isclose(med.value, 0.0070) and med.passed
+    assert math.isclose(worst.value, 0.0073) and worst.passed
+    assert "5: 7.0*" in med.metric
+    bias_med = next(r for k, r in by.items() if k.startswith("|width bias|, median"))
+    bias_worst = by["|width bias|, worst seed"]
+    assert math.isclose(bias_med.value, 0.0045) and bias_med.passed
+    assert math.isclose(bias_worst.value, 0.0060) and not bias_worst.passed
+    assert math.isclose(by["the width reference's calibration applied"].value, 2 / 3)
+
+
+def test_spread_rows_on_a_phone_have_no_bias_rows_and_fail_on_a_lost_seed():
+    per_seed = {3: _f(14.9, 11.4), 0: _f(float("nan"), float("nan"), calibrated=False)}
+    rows = spread_rows("phone", "phone", per_seed)
+    assert not any("|width bias|" in r.metric for r in rows)
+    worst = next(r for r in rows if r.metric.endswith("worst seed"))
+    assert math.isclose(worst.value, 0.0149) and not worst.passed   # a seed that measured nothing fails
