@@ -329,7 +329,11 @@ def summary_text(res) -> str:
         if env:
             lines.append(env)
     fw = res.derived.get("firmware")
-    if fw and not res.trust.get("trustworthy", True):
+    # every value a user pastes (firmware PA, the slicer's VE, Kalico's constants) carries
+    # the verdict on its own line: an interval printed beside an untrustworthy value reads
+    # as a number to use (a Bowden user whose firmware ignores PA is sent to VE)
+    trusted = res.trust.get("trustworthy", True)
+    if fw and not trusted:
         pa = res.derived["pressure_advance_s"]
         lines.append(f"pressure advance {pa['median']:.4f} s: NOT TRUSTWORTHY, no firmware line "
                      "(see the fit quality below)")
@@ -343,11 +347,17 @@ def summary_text(res) -> str:
             lines.append(f"  but the printer profile '{prof.get('name', '?')}' says its firmware ignores these "
                          "commands: use KISSlicer VE below (`calib export FIT --to kisslicer`)")
     ve = res.derived.get("kisslicer_ve_us")
-    if ve:
+    if ve and not trusted:
+        lines.append(f"KISSlicer VE {ve['median']:.3f} us: NOT TRUSTWORTHY, not for the slicer profile "
+                     "(see the fit quality below)")
+    elif ve:
         lines.append(f"KISSlicer VE {ve['median']:.3f} us (95 % {ve['ci95'][0]:.3f}-{ve['ci95'][1]:.3f})")
     for kind in ("tanh", "recipr"):
         kd = res.derived.get(f"kalico_{kind}")
         if not kd:
+            continue
+        if not trusted:
+            lines.append(f"Kalico {kind}: NOT TRUSTWORTHY, no firmware line (see the fit quality below)")
             continue
         parts = []
         for key, label, unit in (("pressure_advance_s", "linear_advance", "s"),
