@@ -160,6 +160,17 @@ def test_calibration_needs_two_widths_and_a_plausible_gain():
     assert not cal.applied and "two widths" in cal.note
     cal = calibrate(*_stations(0.5, 0.0))          # half the flow: not an edge offset
     assert not cal.applied and cal.warnings
+    # a phone photo whose 0.4 mm sections were misread 0.2 mm wide (bench_realism, direct
+    # drive, seed 0: apparent 0.97 / 0.55 mm for 1.0 / 0.4): g 0.70, and b0 +250 um would
+    # have been applied, tight, with it; rejected, and not the fit's prior either
+    w, v, nom, sec = _stations(1.0, -0.031)
+    w[nom < 0.5] += 0.2
+    cal = calibrate(w, v, nom, sec)
+    assert cal.gain == pytest.approx(2 / 3, abs=0.02) and cal.offset_mm > 0.2 and cal.offset_sd_mm < 0.01
+    assert not cal.applied and not cal.prior_ok and "rejected (gain 0.67" in cal.note
+    assert any("0.57 mm for 0.40" in x and "misread" in x for x in cal.warnings)
+    # a printer 10 % under-extruding is believed
+    assert calibrate(*_stations(0.9, -0.03)).applied
 
 
 def test_calibration_says_when_the_reference_is_there_but_could_not_be_measured():
