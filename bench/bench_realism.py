@@ -21,7 +21,9 @@ um apparent). So the scenes with every phenomenon are also rendered on SPREAD_SE
 seeds (``CALIB_BENCH_REALISM_SEEDS``, the count in all, default 3) and summarised: the
 median and the worst over the seeds of the widths a user gets (calibrated, or where the
 calibration is not applied, offset by the fit's ``scan_bias``) and how often the
-calibration was applied.
+calibration was applied. Over every scene and seed, how often an applied offset lands
+within 1.96 of its own sd of what the test tracks need (:func:`offset_coverage_row`): the
+sd becomes the fit's ``scan_bias`` prior, so it must be honest.
 """
 from __future__ import annotations
 
@@ -108,6 +110,7 @@ def evaluate(camera: str, realism: str, plate: str = "dark", plastic: str = "opa
             "missed": float(np.mean(tb.flag[truth_ok] == "missing")) if truth_ok.any() else np.nan,
             "ghost_valid": ghost,
             "calibrated": bool(res.summary["apparent_width"]["applied"]),
+            "offset_sd": cal.get("offset_sd_mm"),
             "markers": int(res.registration.n_markers), "markers_expected": len(man.fiducials),
             "method": res.registration.method, "error": "", **sd_honest}
 
@@ -199,6 +202,30 @@ def used_widths(f: dict) -> dict:
     return {"rms": b["rms"], "bias": b["bias"]} if b else {"rms": f["rms"], "bias": f["bias"]}
 
 
+def offset_z(f: dict) -> float:
+    """An applied calibration's miss in its own sd: the calibrated widths' bias (what the
+    test tracks needed minus the offset applied) over the offset's sd; NaN if not applied."""
+    sd = f.get("offset_sd")
+    if not f.get("calibrated") or not sd or not np.isfinite(f.get("bias", np.nan)):
+        return float("nan")
+    return float(f["bias"] / sd)
+
+
+#: The share of applied offsets within 1.96 of their sd a bench of this size must show
+#: (95 % expected; with ~12 applied seeds one or two outside is chance).
+OFFSET_COVERAGE_MIN = 0.85
+
+
+def offset_coverage_row(z: list[float]) -> Row:
+    """Over every applied calibration of the bench: the share whose miss is within 1.96 sd."""
+    z = np.asarray([v for v in z if np.isfinite(v)])
+    share = float(np.mean(np.abs(z) <= 1.96)) if len(z) else float("nan")
+    worst = f"{z[np.argmax(np.abs(z))]:+.1f}" if len(z) else "-"
+    return Row("realism", f"applied width offsets within 1.96 sd of what the test tracks need ({len(z)} applied; "
+               f"worst {worst} sd)", share, "fraction", f">= {OFFSET_COVERAGE_MIN}",
+               bool(len(z) and share >= OFFSET_COVERAGE_MIN))
+
+
 def spread_rows(label: str, cam: str, per_seed: dict[int, dict]) -> list[Row]:
     """Median and worst over seeds of one scene (``per_seed``: seed -> :func:`evaluate`)."""
     target_rms = 0.025 if cam == "phone" else 0.010
@@ -224,14 +251,17 @@ def spread_rows(label: str, cam: str, per_seed: dict[int, dict]) -> list[Row]:
                      float(np.nanmedian(ab)), "mm", "<= 0.005", bool(np.nanmedian(ab) <= 0.005)),
                  Row("realism", f"{tag}: |width bias|, worst seed", float(np.nanmax(ab)), "mm", "<= 0.005",
                      bool(np.isfinite(ab).all() and np.nanmax(ab) <= 0.005))]
-    rows.append(Row("realism", f"{tag}: the width reference's calibration applied", n_cal / len(seeds),
-                    "fraction", "", None))
+    z = {s: offset_z(per_seed[s]) for s in seeds}
+    each_z = ", ".join(f"{s}: {z[s]:+.1f}" for s in seeds if np.isfinite(z[s])) or "none applied"
+    rows.append(Row("realism", f"{tag}: the width reference's calibration applied (its miss / its sd: {each_z})",
+                    n_cal / len(seeds), "fraction", "", None))
     return rows
 
 
 def run() -> list[Row]:
     rows: list[Row] = []
     found = expected = 0
+    z_all: list[float] = []
     n_seeds = max(1, int(os.environ.get("CALIB_BENCH_REALISM_SEEDS", "3")))
     for label, cam, realism, plate, plastic, printer in SCENES:
         f = evaluate(cam, realism, plate, plastic, printer=printer)
@@ -263,13 +293,16 @@ def run() -> list[Row]:
         rows.append(Row("realism", f"{label}: stations of a line never printed passed as a bead",
                         f["ghost_valid"], "fraction", "<= 0.02",
                         bool(np.isfinite(f["ghost_valid"]) and f["ghost_valid"] <= 0.02)))
+        z_all.append(offset_z(f))
         found += f["markers"]
         expected += f["markers_expected"]
         if realism.startswith("all") and n_seeds > 1:
             per_seed = {SEED: f}
             for sd in SPREAD_SEEDS[:n_seeds - 1]:
                 per_seed[sd] = evaluate(cam, realism, plate, plastic, seed=sd, printer=printer)
+                z_all.append(offset_z(per_seed[sd]))
             rows += spread_rows(label, cam, per_seed)
+    rows.append(offset_coverage_row(z_all))
     rows.append(Row("realism", f"printed markers found over all {len(SCENES)} scenes", found / max(expected, 1),
                     "fraction", ">= 0.95", found / max(expected, 1) >= 0.95))
     return rows

@@ -27,6 +27,9 @@ MIN_VALID_FRACTION = 0.2
 #: Below this scale a 0.4 mm bead spans < 4 px and the edge pair's width and blur cannot be
 #: told apart (a 200 dpi scan: 7.9 px/mm); 300 dpi is 11.8 px/mm.
 MIN_PX_PER_MM = 10.0
+#: Flags of a station the edge fit could not read (measure/table.py), as opposed to one a
+#: label, a crossing or the picture's border took: measure/calibrate.py MIN_MEASURED_SHARE.
+EDGE_FIT_FAILED = ("fit", "isolated", "missing", "faint")
 #: The width reference is "in glare" when more of its valid stations than this carry a streak.
 GLARE_REFERENCE_SHARE = 0.5
 #: A scan whose widths scatter this many times their edge fits' sd, or by this floor (mm),
@@ -274,7 +277,8 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
     return calibrate(width, ok, smp.width_nominal_mm, section, height_mm=h,
                      plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check,
                      t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm, photo=photo,
-                     section_floor_mm=tm.sd_floor_mm if tm is not None else 0.0, heading=heading)
+                     section_floor_mm=tm.sd_floor_mm if tm is not None else 0.0, heading=heading,
+                     failed=np.isin(m.table.flag, EDGE_FIT_FAILED), blur_mm=m.blur_mm)
 
 
 def _is_photo(reg, manifest) -> bool:

@@ -181,6 +181,39 @@ def test_calibration_says_when_the_reference_is_there_but_could_not_be_measured(
     assert "only 2 of the 3 width-reference sections" in cal.note and "two widths (" not in cal.note
 
 
+def test_a_section_the_edge_fit_mostly_failed_on_is_left_out_and_said_why():
+    """bench_realism's phone photo, seed 0: the prime line's 0.4 mm passes in the far,
+    defocused band (blur 0.28 mm sd) passed 24 and 42 of ~460 stations each, reading
+    0.54-0.55 mm. A section most of whose stations failed is not a fair sample: left out,
+    and the note says the bead is blurred over and what to do."""
+    w, v, nom, sec = _stations(1.0, -0.031, widths=(1.0, 0.4, 1.0, 0.4), n=120)
+    narrow = nom < 0.5
+    survivors = narrow & (np.arange(len(w)) % 10 == 0)
+    w[survivors] += 0.15
+    failed = narrow & ~survivors
+    v = ~failed
+    blur = np.where(narrow, 0.28, 0.29)
+    cal = calibrate(w, v, nom, sec, failed=failed, blur_mm=blur)
+    assert not cal.applied and not cal.prior_ok
+    assert "0.40 mm sections were read at 24 of 240 stations: blurred over (edge blur 0.28 mm" in cal.note
+    assert [d["valid"] for d in cal.dropped_sections] == [12, 12]
+    # without the flags the same survivors make a reference with a gain far from 1
+    assert not calibrate(w, v, nom, sec).applied and calibrate(w, v, nom, sec).gain < 0.85
+    # sharp beads whose fits failed for another reason: said so, not "blurred over"
+    cal = calibrate(w, v, nom, sec, failed=failed, blur_mm=np.full(len(w), 0.05))
+    assert "edge fit failed on the rest" in cal.note and "blurred" not in cal.note
+    # one narrow section lost, the other read: calibrated from the rest, with a warning
+    w, v, nom, sec = _stations(1.0, -0.031, widths=(1.0, 0.4, 1.0, 0.4), n=120)
+    failed = (sec == 3) & (np.arange(len(w)) % 10 != 0)
+    w[(sec == 3) & ~failed] += 0.15
+    cal = calibrate(w, ~failed, nom, sec, failed=failed)
+    assert cal.applied and abs(cal.offset_mm + 0.031) < 0.003
+    assert any("read at 12 of 120 stations" in x and "other sections" in x for x in cal.warnings)
+    # a failed station every other one is still a measured section
+    failed = (sec == 1) & (np.arange(len(w)) % 2 == 0)
+    assert not calibrate(w, ~failed, nom, sec, failed=failed).dropped_sections
+
+
 def test_calibration_warns_when_a_section_has_not_settled():
     w, v, nom, sec = _stations(1.0, -0.03)
     w2 = w.copy()
