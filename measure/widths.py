@@ -118,6 +118,10 @@ TIP_REACH_MM = 0.35
 #: A track's blur takes its own level about the picture's blur plane from at least this
 #: many of its stations in the blur-free pass (:func:`_learn_blur_plane`).
 TRACK_BLUR_MIN_STATIONS = 20
+#: The blur plane's own error is read in this many square cells across the picture's
+#: stations, from cells with this many wide beads or more (:func:`_relative_spread`).
+BLUR_SPREAD_CELLS = 20
+BLUR_SPREAD_PER_CELL = 15
 #: A station whose measured width changes faster than this along the track (mm/mm) is
 #: flagged "steep" (:func:`steep`). Over five flatbed scenes of the virtual printer at the
 #: truth (stop-mid-path direct drive and Bowden, spiral Bowden and direct drive,
@@ -339,9 +343,9 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     steady = (flag == "") & ~(w_nom <= 0)
     if manifest is not None:
         steady &= ~_near_bead_ends(manifest, smp, BLUR_END_CLEAR_MM)
-    plane, track_blur = _learn_blur_plane(t, y, p0, inside, steady, uv_c, ppm_n, height, nrm,
-                                          prior=blur_prior_px, w_ref=w_ref, gap=gap,
-                                          track=smp.track) if fix_blur else (None, None)
+    plane, track_blur, blur_rel_sd = _learn_blur_plane(t, y, p0, inside, steady, uv_c, ppm_n, height, nrm,
+                                                       prior=blur_prior_px, w_ref=w_ref, gap=gap,
+                                                       track=smp.track) if fix_blur else (None, None, np.nan)
     if plane is not None:
         p1 = p0.copy()
         p1[:, 5] = np.clip(plane[0] + plane[1] * uv_c[:, 0] + plane[2] * uv_c[:, 1] + track_blur, 0.3,
@@ -478,6 +482,18 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     place_sd = registration_place_sd(registration, xy, tangent)
     by_slope = slope_sd(smp.track, smp.s_mm, w, sd, valid, place_sd)
     sd, sd_own = np.hypot(sd, by_slope), np.hypot(sd_own, by_slope)
+    # the width was read with the blur held at the picture's plane, which is itself known
+    # only to its cells' spread about it (_relative_spread), and a bead not much wider than
+    # the blur moves with it (measure/edges.py width_per_blur: dw/ds -4.8 at w = 2 s).
+    # On bench_realism's phone photo at 35 deg (Bowden, seed 1; true width / blur binned)
+    # the errors' sd was 31 um at w/s 1.5-2 and 19 um at 2-2.5 against 9-12 um above 3,
+    # error / sd 1.7 and 2.0 there; with this term 1.06 and 1.31, and the fit's width
+    # offset (bench_realism calibrated_by_fit) -81 um for -46, where it took -105 and with
+    # it back-pressure Kb 0.43 for 1.0, the narrow beads' error weighed as if known.
+    if plane is not None and np.isfinite(blur_rel_sd):
+        by_blur = np.abs(np.nan_to_num(edges.width_per_blur(t, fit.params, wts))) * blur_rel_sd * fit.params[:, 5]
+        by_blur = np.where(w > 0, by_blur, 0.0)
+        sd, sd_own = np.hypot(sd, by_blur), np.hypot(sd_own, by_blur)
     sd_own = np.where(np.isfinite(sd_own), sd_own, np.nan)
     w = np.where(np.isfinite(w), w, np.nan)
     sd = np.where(np.isfinite(sd), sd, np.nan)
@@ -826,8 +842,11 @@ def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals,
     blur_px = fit1.params[:, 5] * ppm_n[sub]
     ok1 = fit1.ok & usable[sub] & (fit1.width > 4 * fit1.params[:, 5])
     plane = _blur_plane(uv_c[sub], blur_px, fit1, ok=ok1, prior=prior)
-    if plane is None or track is None:
-        return plane, np.zeros(n)
+    if plane is None:
+        return None, np.zeros(n), float("nan")
+    level = plane[0] + plane[1] * uv_c[sub, 0] + plane[2] * uv_c[sub, 1]
+    if track is None:
+        return plane, np.zeros(n), _relative_spread(blur_px, level, ok1, uv_c[sub])
     # each track's own level about the plane: the edge of a taller bead is softer (its
     # rounded flank), and a blur too small reads the bead wide (seed 001's RetractTest,
     # heights 0.10-0.35 mm line by line: +0.3 ... +9.7 um with one plane)
@@ -838,7 +857,36 @@ def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals,
         k = ok1 & (trk == tid) & np.isfinite(r)
         if k.sum() >= TRACK_BLUR_MIN_STATIONS:
             off[np.asarray(track) == tid] = float(np.median(r[k]))
-    return plane, off
+    return plane, off, _relative_spread(blur_px, level + off[sub], ok1, uv_c[sub])
+
+
+def _relative_spread(blur_px, model_px, ok, uv, cells: int = BLUR_SPREAD_CELLS,
+                     per_cell: int = BLUR_SPREAD_PER_CELL) -> float:
+    """How far the blur the widths are measured with is off where it is applied, relative
+    to it: the robust sd (1.4826 MAD) of the blur-free pass's median relative misfit in
+    square cells (``cells`` across the stations' extent in the picture, ``per_cell`` wide
+    beads ``ok`` or more each, at least 8 such cells), less what each cell's median keeps of
+    its fits' own noise: the plane's error, which changes slowly over the picture. Else the
+    stations' robust sd (>= 20), else NaN."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = blur_px / model_px - 1.0
+    use = ok & np.isfinite(rel) & (model_px > 0)
+    if use.sum() < 20:
+        return float("nan")
+    rel, uv = rel[use], np.asarray(uv, float)[use]
+    size = max(float(np.ptp(uv, axis=0).max()) / cells, 1.0)
+    key = np.floor(uv[:, 0] / size) * 1e6 + np.floor(uv[:, 1] / size)
+    uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    full = np.flatnonzero(counts >= per_cell)
+    spread = float(1.4826 * np.median(np.abs(rel - np.median(rel))))
+    if len(full) < 8:
+        return spread
+    meds = np.array([np.median(rel[inv == i]) for i in full])
+    within = np.concatenate([rel[inv == i] - m for i, m in zip(full, meds)])
+    # a cell's median still holds its stations' noise: sd 1.2533 sigma / sqrt(n)
+    noise_var = np.mean((1.2533 * 1.4826 * np.median(np.abs(within))) ** 2 / counts[full])
+    between = (1.4826 * np.median(np.abs(meds - np.median(meds)))) ** 2
+    return float(np.sqrt(max(between - noise_var, 0.0)))
 
 
 def _with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True):

@@ -170,3 +170,27 @@ def test_streaks_are_believed_only_when_their_sides_agree_on_one_light(share_fac
     else:
         assert not streak.any()
         np.testing.assert_array_equal(fit.params, plain.params)
+
+
+def test_width_per_blur_is_how_the_fitted_width_moves_with_the_blur_it_is_held_at():
+    """A fit with the blur held 2 % off: the width it returns moves by width_per_blur x the
+    blur's error, large for a bead not much wider than the blur, small for a wide one."""
+    from measure.edges import width_per_blur
+
+    s = 0.15
+    w = np.array([0.25, 0.3, 0.45, 0.9])
+    half = w / 2 + 3 * s + 0.5
+    t = np.linspace(-1, 1, 160)[None] * half[:, None]
+    p = np.column_stack([np.full(4, 0.2), np.full(4, 0.01), np.full(4, 0.4), np.zeros(4), w, np.full(4, s)])
+    y = edge_pair(t, p)
+    moved = []
+    for ds in (-0.02 * s, 0.02 * s):
+        q = p.copy()
+        q[:, 5] += ds
+        moved.append(fit_profiles(t, y, q, fixed_s=True).width)
+    numeric = (moved[1] - moved[0]) / (0.04 * s)
+    slope = width_per_blur(t, p)
+    np.testing.assert_allclose(slope, numeric, rtol=0.05)
+    assert slope[0] < -4.0 and -1.0 < slope[3] < 0.0          # w = 1.7 s against w = 6 s
+    # a function of w / s: the same bead and window at twice the scale
+    np.testing.assert_allclose(width_per_blur(2 * t, p * [1, 0.5, 1, 2, 2, 2]), slope, rtol=1e-3)

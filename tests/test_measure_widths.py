@@ -174,6 +174,26 @@ def test_blur_plane_from_stations_on_one_line_keeps_the_pictures_gradient():
     assert got[1] == got[2] == 0.0 and got[0] == pytest.approx(np.median(b1))
 
 
+def test_the_blur_planes_own_error_is_read_in_cells_without_each_fits_noise():
+    """Known answer: the blur the widths are held at is off by a field that changes slowly
+    over the picture (sd 2 %), and each station's blur-free fit adds its own 5 % noise.
+    The cells' medians read the field's 2 %, not the stations' ~5.4 %; with too few
+    stations per cell it falls back to the stations' spread."""
+    from measure.widths import _relative_spread
+
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(0, 4000, (6000, 2))
+    cells = rng.normal(0, 0.02, (20, 20))
+    field = cells[np.minimum((uv[:, 0] // 200).astype(int), 19), np.minimum((uv[:, 1] // 200).astype(int), 19)]
+    model = np.full(len(uv), 2.4)
+    blur = model * (1 + field) * (1 + rng.normal(0, 0.05, len(uv)))
+    ok = np.ones(len(uv), bool)
+    assert _relative_spread(blur, model, ok, uv) == pytest.approx(0.02, rel=0.25)
+    sparse = _relative_spread(blur[:100], model[:100], ok[:100], uv[:100])
+    assert sparse == pytest.approx(0.054, rel=0.25)
+    assert np.isnan(_relative_spread(blur[:10], model[:10], ok[:10], uv[:10]))
+
+
 @pytest.mark.parametrize("seed, coloured", [(1, True), (3, False)])
 def test_a_coloured_bead_on_a_grained_light_plate_is_measured_in_colour(seed, coloured):
     """Textured PEI's grain is nearly neutral, a coloured bead differs from the plate in hue:
