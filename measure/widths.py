@@ -487,9 +487,10 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     # the blur moves with it (measure/edges.py width_per_blur: dw/ds -4.8 at w = 2 s).
     # On bench_realism's phone photo at 35 deg (Bowden, seed 1; true width / blur binned)
     # the errors' sd was 31 um at w/s 1.5-2 and 19 um at 2-2.5 against 9-12 um above 3,
-    # error / sd 1.7 and 2.0 there; with this term 1.06 and 1.31, and the fit's width
-    # offset (bench_realism calibrated_by_fit) -81 um for -46, where it took -105 and with
-    # it back-pressure Kb 0.43 for 1.0, the narrow beads' error weighed as if known.
+    # error / sd 1.7 and 2.0 there; with this term 1.06 and 1.31. The truth's model fitted
+    # with scan_bias (bench_realism calibrated_by_fit) read the width offset -105 um for
+    # -46, Kb 0.43, w_sat 1.56 mm, tau 0.774 s (truth 1.0, 0.8 mm, 0.8 s), the narrow
+    # beads' error weighed as if known; with it -81 um, 0.61, 1.12 mm, 0.796 s.
     if plane is not None and np.isfinite(blur_rel_sd):
         by_blur = np.abs(np.nan_to_num(edges.width_per_blur(t, fit.params, wts))) * blur_rel_sd * fit.params[:, 5]
         by_blur = np.where(w > 0, by_blur, 0.0)
