@@ -167,6 +167,8 @@ class WidthCalibration:
     heading_shift_mm, heading_shift_sd_mm  on a photo, how much wider the test tracks read at
                     the reference's heading than on average, taken out of the offset
                     (:func:`heading_shift`); heading_coef_mm its (a, b) (mm)
+    blur_offset_sd_mm  the part of offset_sd_mm from the blur the reference was read with
+                    (calibrate's ``blur_sens_mm``)
     dropped_sections  sections left out because the edge fit failed on most of their
                     stations (MIN_MEASURED_SHARE): commanded width, valid and tried counts,
                     edge blur (mm)
@@ -189,6 +191,7 @@ class WidthCalibration:
     heading_shift_sd_mm: float = float("nan")
     heading_coef_mm: tuple | None = None
     dropped_sections: list = field(default_factory=list)
+    blur_offset_sd_mm: float = float("nan")
     note: str = ""
     warnings: list = field(default_factory=list)
 
@@ -376,7 +379,8 @@ def heading_shift(track, s_mm, t_s, nominal_mm, width_mm, valid, nx, ny, ref_nx,
 def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
               plain_width_mm=None, streak_check=None, t_s=None, since_s=None,
               settle_s=None, x_mm=None, photo: bool = False, section_floor_mm: float = 0.0,
-              heading=None, failed=None, blur_mm=None) -> WidthCalibration:
+              heading=None, failed=None, blur_mm=None, blur_sens_mm=None,
+              blur_rel_sd: float = float("nan")) -> WidthCalibration:
     """Fit eq. (1) to measured apparent widths at the reference stations.
 
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
@@ -421,6 +425,13 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     faint); a section where fewer than MIN_MEASURED_SHARE of its read-or-failed stations
     are valid is left out, and said so (``blur_mm``, the edge blur per station, says
     whether it was blurred over).
+
+    ``blur_sens_mm``, ``blur_rel_sd``: how far each station's width moves per unit relative
+    error of the blur it was read with (mm; measure/widths.py ``width_per_rel_blur_mm``) and
+    that error's sd (``blur_rel_sd``). One blur error moves every section at once, the
+    narrow ones most, and eq. (1)'s intercept amplifies it: b0 moves by sum_k L_k S_k per
+    unit error (L the intercept's row of the weighted least squares, S_k a section's median
+    sensitivity), added in quadrature to the offset's sd (``blur_offset_sd_mm``).
     """
     cal = WidthCalibration(height_mm=float(height_mm))
     rows = []
@@ -439,12 +450,14 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                                width_class=np.round(nominal_mm[use] / 0.05).astype(int),
                                x_mm=None if x_mm is None else np.asarray(x_mm)[use],
                                max_T_s=SETTLE_T_MAX_SHARE * design_s if np.isfinite(design_s) else None)
+    sens = []                               # per row: median width per unit relative blur error (mm)
     for k in np.unique(section):
         m = (section == k) & valid & np.isfinite(width_mm) & (width_mm > 0)
         if m.sum() < MIN_STATIONS:
             continue
         a = width_mm[m]                     # in print order (stations along the track)
         row = {"width_commanded_mm": float(np.median(nominal_mm[m])), "stations": int(m.sum())}
+        sk = np.asarray(blur_sens_mm, float)[m] if blur_sens_mm is not None else np.array([np.nan])
         if since_s is not None:
             fit = joint.get(k)
             if fit is None:
@@ -453,6 +466,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                        settle_T_s=fit["T_s"], t_mid_s=float(np.median(np.asarray(t_s)[m])) if t_s is not None
                        else float("nan"))
             rows.append(row)
+            sens.append(float(np.nanmedian(sk)) if np.isfinite(sk).any() else float("nan"))
             continue
         x = np.linspace(-0.5, 0.5, len(a))
         slope, icpt = np.polyfit(x, a, 1)   # the change across the section: a flow still settling
@@ -461,6 +475,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
         sd = max(mad * 1.2533 / np.sqrt(n_ind), 0.5e-3)       # sd of a median, with a 0.5 um floor
         row.update(apparent_mm=float(np.median(a)), apparent_sd_mm=sd, trend_mm=float(slope))
         rows.append(row)
+        sens.append(float(np.nanmedian(sk)) if np.isfinite(sk).any() else float("nan"))
     cal.sections = rows
     cal.section_floor_mm = float(section_floor_mm)
     ws = np.array([r["width_commanded_mm"] for r in rows])
@@ -491,6 +506,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     y = np.array([r["apparent_mm"] for r in rows])
     cov = np.linalg.inv(A.T @ (A * wt[:, None]))
     coef = cov @ (A.T @ (wt * y))
+    intercept_row = (cov @ (A.T * wt))[-1]          # b0 = intercept_row . y
     resid = y - A @ coef
     if drift:
         cal.gain_drift_per_10s = float(coef[1])
@@ -503,6 +519,10 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     b0 = b0 - (1.0 - g) * height_mm * (1.0 - np.pi / 4.0)
     cal.gain, cal.offset_mm = float(g), float(b0)
     cal.gain_sd, cal.offset_sd_mm = float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1]))
+    S = np.array(sens)
+    if np.isfinite(blur_rel_sd) and np.isfinite(S).all():
+        cal.blur_offset_sd_mm = float(abs(intercept_row @ S) * blur_rel_sd)
+        cal.offset_sd_mm = float(np.hypot(cal.offset_sd_mm, cal.blur_offset_sd_mm))
     if plain_width_mm is not None:
         plain = calibrate(plain_width_mm, valid, nominal_mm, section, height_mm, t_s=t_s, since_s=since_s,
                           settle_s=settle_s, x_mm=x_mm, section_floor_mm=section_floor_mm)
@@ -545,7 +565,11 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     drifting = any(abs(r["trend_mm"]) > (MAX_EXTRAPOLATION_MM if "settle_T_s" in r else MAX_TREND_MM)
                    for r in unsettled)
     if drifting or cal.offset_sd_mm > MAX_OFFSET_SD_MM:
+        blurred = np.isfinite(cal.blur_offset_sd_mm) and cal.blur_offset_sd_mm > 0.7 * cal.offset_sd_mm
         why = ("the width reference had not settled" if drifting else
+               f"the blur it was read with leaves its offset loose (+- {cal.blur_offset_sd_mm * 1000:.0f} um of "
+               "it: its narrow passes are a few blurs wide, and their width moves with the blur; a flatbed scan "
+               "or a sharper, closer photo avoids it)" if blurred else
                "the width reference's sections disagree" if disagree else
                f"the picture's own width scatter ({section_floor_mm * 1000:.1f} um a section) leaves the "
                "reference's offset loose")

@@ -278,7 +278,19 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
                      plain_width_mm=m.plain_width_mm if in_glare else None, streak_check=check,
                      t_s=smp.t_s, since_s=since, settle_s=settle, x_mm=smp.x_mm, photo=photo,
                      section_floor_mm=tm.sd_floor_mm if tm is not None else 0.0, heading=heading,
-                     failed=np.isin(m.table.flag, EDGE_FIT_FAILED), blur_mm=m.blur_mm)
+                     failed=np.isin(m.table.flag, EDGE_FIT_FAILED), blur_mm=m.blur_mm,
+                     blur_sens_mm=m.width_per_rel_blur_mm, blur_rel_sd=_blur_doubt(m, tm))
+
+
+def _blur_doubt(ref, test) -> float:
+    """How far the blur the width reference was read with may be off, relative to it: the
+    test tracks' blur plane's own error (measure/widths.py ``blur_rel_sd``), which the
+    reference takes at its own level, or the reference's own spread without them."""
+    for m in (test, ref):
+        v = getattr(m, "blur_rel_sd", float("nan")) if m is not None else float("nan")
+        if np.isfinite(v):
+            return float(v)
+    return float("nan")
 
 
 def _is_photo(reg, manifest) -> bool:

@@ -251,6 +251,10 @@ class WidthMeasurement:
                     ``width_sd_mm`` by the scan's own scatter (:func:`calibrated_sd`)
     place_sd_mm     the registration's along-track sd of each station (mm; :func:`slope_sd`
                     carries it into ``width_sd_mm`` where the width changes along the track)
+    blur_rel_sd     how far the blur the widths were read with may be off, relative to it
+                    (:func:`_relative_spread`; NaN where the blur was fitted free)
+    width_per_rel_blur_mm  how far each width moves per unit relative error of that blur
+                    (mm; measure/edges.py width_per_blur x the blur; None if fitted free)
     """
 
     table: WidthTable
@@ -266,6 +270,8 @@ class WidthMeasurement:
     sd_scale: float = 1.0
     sd_floor_mm: float = 0.0
     place_sd_mm: np.ndarray | None = None
+    blur_rel_sd: float = float("nan")
+    width_per_rel_blur_mm: np.ndarray | None = None
 
 
 def widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
@@ -491,9 +497,11 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     # with scan_bias (bench_realism calibrated_by_fit) read the width offset -105 um for
     # -46, Kb 0.43, w_sat 1.56 mm, tau 0.774 s (truth 1.0, 0.8 mm, 0.8 s), the narrow
     # beads' error weighed as if known; with it -81 um, 0.61, 1.12 mm, 0.796 s.
-    if plane is not None and np.isfinite(blur_rel_sd):
-        by_blur = np.abs(np.nan_to_num(edges.width_per_blur(t, fit.params, wts))) * blur_rel_sd * fit.params[:, 5]
-        by_blur = np.where(w > 0, by_blur, 0.0)
+    per_rel_blur = None
+    if plane is not None:
+        per_rel_blur = np.where(w > 0, edges.width_per_blur(t, fit.params, wts) * fit.params[:, 5], np.nan)
+    if per_rel_blur is not None and np.isfinite(blur_rel_sd):
+        by_blur = np.abs(np.nan_to_num(per_rel_blur)) * blur_rel_sd
         sd, sd_own = np.hypot(sd, by_blur), np.hypot(sd_own, by_blur)
     sd_own = np.where(np.isfinite(sd_own), sd_own, np.nan)
     w = np.where(np.isfinite(w), w, np.nan)
@@ -505,7 +513,8 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else (), glare_streak=streak,
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w),
-                            sd_scale=sd_scale, sd_floor_mm=sd_floor, place_sd_mm=place_sd)
+                            sd_scale=sd_scale, sd_floor_mm=sd_floor, place_sd_mm=place_sd,
+                            blur_rel_sd=float(blur_rel_sd), width_per_rel_blur_mm=per_rel_blur)
 
 
 def isolated(track, s_mm, flag, half_mm: float | None = None, fraction: float | None = None):
