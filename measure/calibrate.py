@@ -439,7 +439,8 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     dropped = _poorly_measured(valid, failed, nominal_mm, section, blur_mm)
     for d in dropped:
         valid = valid & (section != d["section"])
-    cal.dropped_sections = [{k: v for k, v in d.items() if k != "section"} for d in dropped]
+    cal.dropped_sections = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                             for k, v in d.items() if k != "section"} for d in dropped]
     joint = {}
     if since_s is not None:
         use = valid & np.isfinite(width_mm) & (width_mm > 0)
