@@ -239,9 +239,9 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
     the bracket between them (sd 18 um) was not applied. So the reference is in glare on a
     projection only when its luminance says so too.
 
-    On a photo at an angle the offset read at the reference's heading is moved to the test
-    tracks' mean heading, by how their own widths change with heading
-    (measure/calibrate.py heading_shift)."""
+    The offset read at the reference's heading is moved to the test tracks' mean heading,
+    by how their own widths change with heading (measure/calibrate.py heading_shift): a
+    photo at an angle foreshortens, a scanner's lamp lights beads along it unlike the rest."""
     from measure.calibrate import (WidthCalibration, calibrate, heading_shift, reference_stations,
                                    streak_consistency)
     from patterns.manifest import sample_points
@@ -271,7 +271,7 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
         if in_glare and tm.glare_streak is not None:
             check = streak_consistency(t.track, t.t_s, nominal, t.width_mm, tm.plain_width_mm,
                                        tm.glare_streak, t.valid)
-        if photo and ok.any():
+        if ok.any():
             heading = heading_shift(t.track, t.s_mm, t.t_s, nominal, t.width_mm, t.valid, tm.nx, tm.ny,
                                     smp.nx[ok], smp.ny[ok])
     return calibrate(width, ok, smp.width_nominal_mm, section, height_mm=h,

@@ -142,6 +142,35 @@ def test_heading_shift_moves_the_reference_offset_to_the_test_tracks_mean_headin
     assert cm.HEADING_SPAN_MIN > 0
 
 
+def test_heading_shift_reads_a_lamps_lobe_that_is_no_cosine():
+    """A flatbed's lamp lights beads along it unlike the rest: the apparent width dips in a
+    narrow lobe (Gaussian, 12 deg sd, 20 um deep) where the bead lies along the lamp, the
+    reference's heading, as on bench_realism's light-plate scans. The heading's bins read
+    that shift to within 20 % (a 20 deg bin averages the lobe's tip: 10 % of it); the two
+    harmonics (the form of a photo's foreshortening) miss more than a third of it."""
+    from measure.calibrate import heading_shift
+
+    err, harmonic, truths = [], [], []
+    for seed in range(12):
+        track, s, t, nominal, w, valid, nx, ny = _spiral_headings(0.0, 0.0, seed)
+        th = np.arctan2(ny, nx)
+        w = w + _lamp_lobe(th)
+        truth = _lamp_lobe(np.pi / 2) - np.mean(_lamp_lobe(th))
+        shift, sd, a_hat, b_hat = heading_shift(track, s, t, nominal, w, valid, nx, ny, [0.0], [1.0])
+        err.append(shift - truth)
+        harmonic.append(-a_hat - np.mean(a_hat * np.cos(2 * th) + b_hat * np.sin(2 * th)) - truth)
+        truths.append(truth)
+    assert abs(np.mean(err)) < 0.20 * abs(np.mean(truths)) and np.mean(truths) < -0.015
+    assert np.mean(harmonic) > 0.35 * abs(np.mean(truths))
+
+
+def _lamp_lobe(normal_rad, depth_mm=-0.020, sd_deg=12.0):
+    """The apparent width's dip (mm) where a bead's normal lies near the y axis (the bead
+    along x): depth exp(-d^2 / 2 sd^2), d the axis angle from 90 deg."""
+    d = np.mod(np.degrees(normal_rad), 180.0) - 90.0
+    return depth_mm * np.exp(-0.5 * (d / sd_deg) ** 2)
+
+
 def test_heading_shift_needs_headings_that_span_the_half_turn():
     """Test tracks that all lie one way (an ooze test's parallel lines) cannot tell the
     heading's effect from the offset: no shift, the calibration as before."""
