@@ -638,9 +638,11 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                 f"(+-{cal.offset_sd_mm * 1000:.1f} um) from {sum(r['stations'] for r in rows)} reference "
                 f"stations; widths corrected by {-b0 * 1000:+.1f} um")
     if heading is not None:
-        cal.note += (f" (the test tracks read {abs(heading[0]) * 1000:.1f} um "
-                     f"{'wider' if heading[0] > 0 else 'narrower'} at the reference's heading than on average: "
-                     + ("the photo's foreshortening" if photo else "the scanner's lamp") + ", taken out)")
+        seen = abs(heading[0]) > 2.0 * heading[1]     # else a shift of nothing, its sd carried
+        cal.note += (f" (the test tracks read {abs(heading[0]) * 1000:.1f} +- {heading[1] * 1000:.1f} um "
+                     f"{'wider' if heading[0] > 0 else 'narrower'} at the reference's heading than on average"
+                     + ((": the photo's foreshortening" if photo else ": the scanner's lamp") if seen else "")
+                     + ", taken out)")
     return cal
 
 
