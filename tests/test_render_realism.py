@@ -136,6 +136,10 @@ def test_heading_shift_moves_the_reference_offset_to_the_test_tracks_mean_headin
     assert cal.offset_mm == pytest.approx(plain.offset_mm - shift)
     assert cal.offset_sd_mm == pytest.approx(np.hypot(plain.offset_sd_mm, sd))
     assert cal.heading_shift_mm == pytest.approx(shift) and "narrower at the reference's heading" in cal.note
+    assert "the photo's foreshortening" in cal.note
+    # a shift within two of its sd names no cause: on a scan with no lamp it is noise, carried
+    quiet = calibrate(*_stations(1.0, -0.060), heading=(0.0003, 0.0010, 0.0, 0.0))
+    assert "0.3 +- 1.0 um wider at the reference's heading" in quiet.note and "lamp" not in quiet.note
     w, v, nom, sec = _stations(1.0, -0.060, sd=0.02)           # too loose to apply: the note still says it
     loose = calibrate(w, v, nom, sec, photo=True, heading=(shift, sd, 0.012, -0.004))
     assert not loose.applied and f"moved {-shift * 1000:+.0f} um to the test tracks' headings" in loose.note
