@@ -333,9 +333,9 @@ def heading_shift(track, s_mm, t_s, nominal_mm, width_mm, valid, nx, ny, ref_nx,
     the widths regressed on them with one free level per peer cell (a cell often spans a
     few degrees only, so its own mean holds part of h), two rounds of 4-MAD rejection.
     No functional form of h is assumed: the lamp's lobe is not a cosine (HEADING_BIN_DEG).
-    (a, b), the two harmonics fitted the same way, are returned as a summary. sd by a delete-one-block jackknife
-    over ``blocks`` runs of stations along the tracks (the widths' errors are shared along
-    a track). A bead that is physically wider at some headings (a nozzle worn oval) is read
+    (a, b), the two harmonics fitted the same way, are returned as a summary. sd by a
+    delete-one-block jackknife over ``blocks`` runs of stations along the tracks (the
+    widths' errors are shared along a track). A bead that is physically wider at some headings (a nozzle worn oval) is read
     into h too: the reference, printed at one heading, says nothing of that mean, so the
     offset is then the one that leaves the test tracks' physical widths right on average
     over their headings. Measured on the phone renders at 35 deg (2026-11-27, two
