@@ -338,10 +338,12 @@ def heading_shift(track, s_mm, t_s, nominal_mm, width_mm, valid, nx, ny, ref_nx,
     widths' errors are shared along a track). A bead that is physically wider at some
     headings (a nozzle worn oval) is read into h too: the reference, printed at one
     heading, says nothing of that mean, so the offset is then the one that leaves the test
-    tracks' physical widths right on average over their headings. Measured on the phone renders at 35 deg (2026-11-27, two
-    harmonics): the Bowden print of bench_realism read a = +13 um (+9.6 from the truth), so
-    the reference's -72 um became -59 where the test tracks needed -48; on bench_e2e's
-    phone seeds 0-4 the offset's error went from RMS 7.3 to 6.2 um.
+    tracks' physical widths right on average over their headings. Measured on the phone
+    renders at 35 deg (2026-11-27, two harmonics): the Bowden print of bench_realism read
+    a = +13 um (+9.6 from the truth), so the reference's -72 um became -59 where the test
+    tracks needed -48; on bench_e2e's phone seeds 0-4 the offset's error went from RMS 7.3
+    to 6.2 um. The bins against the truth: HEADING_BIN_DEG and docs/MEASUREMENT.md "A
+    scanner's lamp".
     """
     track = np.asarray(track)
     th = np.arctan2(np.asarray(ny, float), np.asarray(nx, float))
