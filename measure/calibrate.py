@@ -125,6 +125,11 @@ MAX_EXTRAPOLATION_MM = 0.025
 #: read +4.0 and +0.1. The test tracks' d_streak does not predict the reference's own error
 #: (-3.5 and -4.0 um there), so it widens the sd rather than correcting the value.
 STREAK_TRUSTED = 1.0
+#: The streak-modelled offset's own error (mm; its depth bound, module docstring of
+#: measure/edges.py), added in quadrature when it is used: on the glare-alone render
+#: (600 dpi, Bowden, seeds 0-8) it read +0.9 to +2.7 um (RMS 2.0) from what the test tracks
+#: needed, where the sections' own sd said 0.7-0.8 um and the test tracks' d_streak 0.9-1.2.
+STREAK_MODEL_SD_MM = 0.0025
 #: On a photo at an angle (the image scale varies over the print by more than
 #: measure.register.PERSPECTIVE) the reference is read in one part of the picture and the
 #: test tracks in others, whose apparent widths differ (defocus, foreshortening, blur across
@@ -258,37 +263,59 @@ def reference_stations(manifest: Manifest, ds_mm: float = 0.25):
     return sub, section[keep], since[keep], settle[keep]
 
 
-#: Edges (s) of the time-since-the-width-changed cells streak_consistency compares within.
+#: Edges (s) of the time-since-the-width-changed cells that :func:`_peer_cells` keys on.
 STREAK_CELL_EDGES_S = (0.0, 0.2, 0.4, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, np.inf)
+#: streak_consistency's flanks: the streak-free stations printed within this many seconds
+#: before and after a run of glare stations (the flow's transients change the bead on the
+#: scale of the spring's time constant, 0.1-1 s; glare bench, 600 dpi, Bowden: a straight line
+#: through flanks of 0.2 / 0.4 / 0.8 s read the runs' physical width +1.0 to +1.2 / +2.7 to
+#: +3.1 / +3.4 to +5.2 um off, a transient's curvature).
+STREAK_FLANK_S = 0.2
 
 
 def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak, valid, min_side: int = 3):
-    """How the test tracks' glare-streak stations compare with their streak-free peers (mm):
-    (d_streak, d_plain, cells). Peers: stations of the same track and commanded width at a
-    similar time since that width began (cells of STREAK_CELL_EDGES_S), so that they laid
-    the same physical bead: per cell with >= ``min_side`` of each kind, the median width of
-    the streak stations, fitted with the streak (d_streak) or plain (d_plain), minus the
-    median of the streak-free ones; the means over cells, weighted by the smaller side. The
-    streak sits at some headings only, so on a spiral both kinds see the same beads: a
-    streak model that reads the bead right gives d_streak ~ 0 while the plain edge pair
-    reads it wide (600 dpi render: +7..+16 um). Why the time cells: on a Bowden printer the
-    glare headings fall at their own phases of the flow steps, and the whole track's two
-    sets differed in physical width by -25..+48 um (per track and width) where the streak
-    model read both within 1.5 um of the truth."""
+    """How the test tracks' glare-streak stations compare with the bead on either side of them (mm):
+    (d_streak, d_plain, runs). A streak sits at some headings only, so on a spiral a track
+    passes in and out of it: per run of glare stations along a track (in print order), a
+    straight line in time through the streak-free stations within STREAK_FLANK_S before and
+    after it (>= ``min_side`` on each side, one commanded width throughout) is the bead it
+    laid; the median of the run's widths fitted with the streak (d_streak) or plain (d_plain)
+    less that line; the means over runs, weighted by the smaller of the run and its flanks. A
+    streak model that reads the bead right gives d_streak ~ 0 while the plain edge pair reads
+    it wide (600 dpi render: +5..+11 um).
+
+    Why neighbours in time and not peers elsewhere on the track: on a Bowden printer the glare
+    headings fall at their own phases of the flow steps. Against the whole track's glare-free
+    stations the glare ones differed in *physical* width by -25..+48 um; against peers at the
+    same time since the width changed (cells 0-0.2-...-12 s, until 2026-11-30) still by -8 to
+    -10 um on the glare-alone render (thermal ooze: the same phase of another step is another
+    bead), which read d_streak -9.8 / -11.6 um where the streak model was within 2 um of the
+    truth, and took the bracket's middle (bias -5 to -6 um on seeds 0-8); the flanks: -1.2 / -0.9."""
     track, t_s, streak = np.asarray(track), np.asarray(t_s, float), np.asarray(streak, bool)
-    nominal_mm = np.asarray(nominal_mm, float)
+    nominal_mm, width_mm = np.asarray(nominal_mm, float), np.asarray(width_mm, float)
+    plain_width_mm = np.asarray(plain_width_mm, float)
     ok = valid & np.isfinite(width_mm) & (width_mm > 0) & np.isfinite(nominal_mm) & np.isfinite(t_s)
-    key = _peer_cells(track, t_s, nominal_mm)
     ds, dp, n = [], [], []
-    for k in np.unique(key[ok]):
-        a = ok & (key == k) & streak
-        b = ok & (key == k) & ~streak
-        if a.sum() < min_side or b.sum() < min_side:
-            continue
-        ref = np.median(width_mm[b])
-        ds.append(np.median(width_mm[a]) - ref)
-        dp.append(np.median(plain_width_mm[a]) - ref)
-        n.append(min(a.sum(), b.sum()))
+    for tid in np.unique(track[ok]):
+        i = np.flatnonzero((track == tid) & ok)
+        i = i[np.argsort(t_s[i], kind="stable")]
+        s, t, w = streak[i], t_s[i], width_mm[i]
+        start = np.flatnonzero(s & ~np.r_[False, s[:-1]])
+        end = np.flatnonzero(s & ~np.r_[s[1:], False])
+        for a0, a1 in zip(start, end):
+            before = np.flatnonzero(~s & (t < t[a0]) & (t >= t[a0] - STREAK_FLANK_S))
+            after = np.flatnonzero(~s & (t > t[a1]) & (t <= t[a1] + STREAK_FLANK_S))
+            if len(before) < min_side or len(after) < min_side:
+                continue
+            run = np.arange(a0, a1 + 1)
+            if np.ptp(nominal_mm[i][np.r_[before, run, after]]) > 0.005:
+                continue
+            side = np.r_[before, after]
+            line = np.polyfit(t[side], w[side], 1)
+            bead = np.polyval(line, t[run])
+            ds.append(np.median(w[run] - bead))
+            dp.append(np.median(plain_width_mm[i][run] - bead))
+            n.append(min(len(run), len(side)))
     if not n:
         return float("nan"), float("nan"), 0
     n = np.asarray(n, float)
@@ -575,7 +602,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                    and abs(streak_check[0]) <= STREAK_TRUSTED * abs(streak_check[1]))
         if np.isfinite(plain.offset_mm) and vouched:
             cal.glare_bracket_mm = (plain.offset_mm, cal.offset_mm)
-            cal.offset_sd_mm = float(np.hypot(cal.offset_sd_mm, streak_check[0]))
+            cal.offset_sd_mm = float(np.sqrt(cal.offset_sd_mm ** 2 + streak_check[0] ** 2 + STREAK_MODEL_SD_MM ** 2))
             b0 = cal.offset_mm
             cal.warnings.append(f"the width reference is in glare: its plain edges read {plain.offset_mm * 1000:+.0f} um, "
                                 f"with the glare streak modelled {cal.offset_mm * 1000:+.0f} um; using the latter, which "
