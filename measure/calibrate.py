@@ -114,7 +114,7 @@ MAX_OFFSET_SD_MM = 0.010
 #: beyond its last station (its sd carries the fit's uncertainty; this bounds the model's).
 MAX_EXTRAPOLATION_MM = 0.025
 #: The glare streak model is believed on the reference when, on the test tracks, its
-#: glare stations' offset from their glare-free peers is at most this share of the plain
+#: glare stations' offset from the bead on either side of them is at most this share of the plain
 #: edge pair's (streak_consistency): when it reads them better than the plain pair does
 #: (that offset, |d_streak|, then joins the sd). Measured (2026-11-29, 600 dpi flatbed,
 #: every phenomenon, bench_realism's spiral; offset read minus what the test tracks need):
@@ -453,9 +453,9 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     width_mm, valid, nominal_mm, section: per station (mm, bool, mm, section index);
     height_mm: the reference's layer height; plain_width_mm: the plain edge pair's widths
     when the reference is in glare (module docstring: the offset is then bracketed);
-    streak_check: (d_streak, d_plain, cells) of :func:`streak_consistency` on the test
+    streak_check: (d_streak, d_plain, runs) of :func:`streak_consistency` on the test
     tracks: when the streak model reads their glare stations like their streak-free ones
-    (|d_streak| <= STREAK_TRUSTED x |d_plain|, >= 2 cells, >= 3 reference sections) the
+    (|d_streak| <= STREAK_TRUSTED x |d_plain|, >= 2 runs, >= 3 reference sections) the
     streak-modelled offset is used, with |d_streak| added to its sd, instead of the bracket's middle. A flow
     factor g scales the bead's area, so the physical width is g w + (1 - g) h (1 - pi/4)
     (fit/geometry.py rounded rectangle): that small (1 - g) term is taken out of the
@@ -606,7 +606,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
             b0 = cal.offset_mm
             cal.warnings.append(f"the width reference is in glare: its plain edges read {plain.offset_mm * 1000:+.0f} um, "
                                 f"with the glare streak modelled {cal.offset_mm * 1000:+.0f} um; using the latter, which "
-                                f"reads the test tracks' glare stations like their glare-free ones "
+                                f"reads the test tracks' glare stations like the bead on either side of them "
                                 f"({streak_check[0] * 1000:+.1f} um against {streak_check[1] * 1000:+.1f} plain)")
         elif np.isfinite(plain.offset_mm):
             cal.glare_bracket_mm = (plain.offset_mm, cal.offset_mm)
