@@ -274,8 +274,8 @@ STREAK_FLANK_S = 0.2
 
 
 def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak, valid, min_side: int = 3):
-    """How the test tracks' glare-streak stations compare with the bead on either side of them (mm):
-    (d_streak, d_plain, runs). A streak sits at some headings only, so on a spiral a track
+    """How the test tracks' glare-streak stations compare with the bead on either side of
+    them (mm): (d_streak, d_plain, runs). A streak sits at some headings only, so on a spiral a track
     passes in and out of it: per run of glare stations along a track (in print order), a
     straight line in time through the streak-free stations within STREAK_FLANK_S before and
     after it (>= ``min_side`` on each side, one commanded width throughout) is the bead it
@@ -456,8 +456,8 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     streak_check: (d_streak, d_plain, runs) of :func:`streak_consistency` on the test
     tracks: when the streak model reads their glare stations like their streak-free ones
     (|d_streak| <= STREAK_TRUSTED x |d_plain|, >= 2 runs, >= 3 reference sections) the
-    streak-modelled offset is used, with |d_streak| and STREAK_MODEL_SD_MM added to its sd, instead of the bracket's middle. A flow
-    factor g scales the bead's area, so the physical width is g w + (1 - g) h (1 - pi/4)
+    streak-modelled offset is used, with |d_streak| and STREAK_MODEL_SD_MM added to its sd,
+    instead of the bracket's middle. A flow factor g scales the bead's area, so the physical width is g w + (1 - g) h (1 - pi/4)
     (fit/geometry.py rounded rectangle): that small (1 - g) term is taken out of the
     intercept before it is called b0.
 
@@ -602,7 +602,8 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
                    and abs(streak_check[0]) <= STREAK_TRUSTED * abs(streak_check[1]))
         if np.isfinite(plain.offset_mm) and vouched:
             cal.glare_bracket_mm = (plain.offset_mm, cal.offset_mm)
-            cal.offset_sd_mm = float(np.sqrt(cal.offset_sd_mm ** 2 + streak_check[0] ** 2 + STREAK_MODEL_SD_MM ** 2))
+            cal.offset_sd_mm = float(np.sqrt(cal.offset_sd_mm ** 2 + streak_check[0] ** 2
+                                             + STREAK_MODEL_SD_MM ** 2))
             b0 = cal.offset_mm
             cal.warnings.append(f"the width reference is in glare: its plain edges read {plain.offset_mm * 1000:+.0f} um, "
                                 f"with the glare streak modelled {cal.offset_mm * 1000:+.0f} um; using the latter, which "
