@@ -457,9 +457,9 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
     tracks: when the streak model reads their glare stations like their streak-free ones
     (|d_streak| <= STREAK_TRUSTED x |d_plain|, >= 2 runs, >= 3 reference sections) the
     streak-modelled offset is used, with |d_streak| and STREAK_MODEL_SD_MM added to its sd,
-    instead of the bracket's middle. A flow factor g scales the bead's area, so the physical width is g w + (1 - g) h (1 - pi/4)
-    (fit/geometry.py rounded rectangle): that small (1 - g) term is taken out of the
-    intercept before it is called b0.
+    instead of the bracket's middle. A flow factor g scales the bead's area, so the physical
+    width is g w + (1 - g) h (1 - pi/4) (fit/geometry.py rounded rectangle): that small
+    (1 - g) term is taken out of the intercept before it is called b0.
 
     With the stations' timing (t_s: print time, since_s: seconds since the section's
     width changed, settle_s: the section's designed settling time, x_mm: bed x, as
