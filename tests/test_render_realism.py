@@ -289,13 +289,16 @@ def _glare_track(rng, dt_s=0.02):
     settles 30 um over 1 s after each change and narrows 20 um over the print (a thermal
     ooze's slow deficit), 2 um of noise; glare in runs of 0.15 s, every 2 s in the first
     half and every 0.5 s in the second (a spiral's turns shorten as it winds in, and one
-    turn crosses the lamp's heading once). (track, t_s, nominal_mm, true_mm, streak)."""
+    turn crosses the lamp's heading once); four of the runs lie on a corner, where the head
+    slows and the bead is 50 um narrower. (track, t_s, nominal_mm, true_mm, streak)."""
     t_s = np.arange(0.0, 40.0, dt_s)
     nominal = np.where((t_s // 5.0) % 2 == 0, 0.5, 1.0)
     since = t_s % 5.0
     true = nominal - 0.046 + 0.030 * np.exp(-since / 1.0) - 0.0005 * t_s + rng.normal(0, 0.002, len(t_s))
     period = np.where(t_s < 20.0, 2.0, 0.5)
     streak = (t_s % period) < 0.15
+    for corner_s in (21.5, 23.5, 32.5, 37.5):
+        true[(t_s >= corner_s - 1e-9) & (t_s < corner_s + 0.15)] -= 0.050
     return np.zeros(len(t_s), int), t_s, nominal, true, streak
 
 
@@ -307,7 +310,8 @@ def test_a_reference_in_glare_takes_the_streak_model_only_when_the_test_tracks_v
     streak-modelled offset is used, with that distance and STREAK_MODEL_SD_MM in its sd; when
     the plain pair reads them closer, the middle. The test tracks' glare falls mostly late in
     the print, where the bead is narrower: peers at the same time since the width changed
-    (the rule until 2026-11-30) read the streak model 5 um off where it is right."""
+    (the rule until 2026-11-30) read the streak model 5 um off where it is right; and the
+    runs on a corner would move a mean over the runs by 4 um."""
     from measure.calibrate import STREAK_MODEL_SD_MM, _peer_cells, streak_consistency
     w, v, nom, sec = _stations(1.0, -0.046)
     plain = w + 0.010
