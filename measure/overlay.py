@@ -17,7 +17,7 @@ from calib.errors import UserError
 
 YELLOW, GREEN, RED, MAGENTA, CYAN = (0, 220, 255), (60, 220, 60), (40, 40, 255), (255, 0, 255), (255, 255, 0)
 GREY = (160, 160, 160)
-FLAG_COLOUR = {"missing": MAGENTA, "faint": GREY}
+FLAG_COLOUR = {"missing": MAGENTA, "faint": GREY, "dropout": GREY}
 
 
 def draw_overlay(color, manifest, registration, measurement, max_side_px: int = 2400) -> np.ndarray:

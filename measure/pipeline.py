@@ -29,7 +29,7 @@ MIN_VALID_FRACTION = 0.2
 MIN_PX_PER_MM = 10.0
 #: Flags of a station the edge fit could not read (measure/table.py), as opposed to one a
 #: label, a crossing or the picture's border took: measure/calibrate.py MIN_MEASURED_SHARE.
-EDGE_FIT_FAILED = ("fit", "isolated", "missing", "faint")
+EDGE_FIT_FAILED = ("fit", "isolated", "missing", "faint", "dropout")
 #: The width reference is "in glare" when more of its valid stations than this carry a streak.
 GLARE_REFERENCE_SHARE = 0.5
 #: A scan whose widths scatter this many times their edge fits' sd, or by this floor (mm),

@@ -55,6 +55,49 @@ def gap_scene():
     return man, smp, gone, g, register(g, man)
 
 
+def test_a_bead_seen_on_both_sides_of_a_short_gap_is_a_dropout_not_an_absence():
+    """A station that sees no bead between stations of its track that see it within 1 mm
+    on either side misread the picture (measure/widths.py DROPOUT_REACH_MM): it is flagged
+    ``dropout``, not data for the fit, and its neighbours are measured (not tip stations);
+    a 10 mm gap in the same picture stays ``missing``. (A printer cannot lay so short a
+    gap, and the renderer's deposition cannot either: a 0.3 mm stretch of zero width is a
+    notch of 16 um, 0.6 mm one of 75 um; so the misreading is made in the picture, a 0.6 mm
+    band of the plate's grey across the bead. Without the rule its three stations are
+    ``missing`` and their neighbours ``end``.)"""
+    from measure.camera import Camera
+    from measure.render import render
+    from measure.widths import dropouts
+    man = scene_manifest()
+    smp = sample_points(man)
+    w = smp.width_nominal_mm.copy()
+    long_ = (smp.track == 3) & (smp.s_mm > 20) & (smp.s_mm < 30)
+    w[long_] = 0.0
+    truth = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
+                       width_mm=w, width_sd_mm=np.zeros(len(w)), valid=np.ones(len(w), bool))
+    r = render(man, truth, Camera.flatbed(scene_region(man), dpi=300), seed=4)
+    g = gray_of(r)
+    # track 3 runs along x at y = 35 mm from x = 20: s = 40.25 mm lies at x = 60.25 mm
+    corners = r.camera.project(np.array([[59.95, 34.3], [60.55, 34.3], [60.55, 35.7], [59.95, 35.7]]))
+    u, v = r.camera.project(np.array([[60.25, 37.5]]))[0]
+    plate = float(np.median(g[int(v) - 2:int(v) + 3, int(u) - 2:int(u) + 3]))
+    cv2.fillConvexPoly(g, np.round(corners).astype(np.int32), plate)
+    tb = measure_widths(g, man, register(g, man)).table
+    short = (smp.track == 3) & (np.abs(smp.s_mm - 40.25) < 0.3)        # s = 40.0, 40.25, 40.5
+    assert short.sum() == 3 and np.all(tb.flag[short] == "dropout") and not tb.valid[short].any()
+    near = (smp.track == 3) & (np.abs(smp.s_mm - 40.25) < 1.3) & ~short
+    assert np.all(tb.valid[near])                     # not tip stations ("end") of an absence
+    inner = long_ & (smp.s_mm > 21) & (smp.s_mm < 29)
+    assert np.all(tb.flag[inner] == "missing")
+    # the rule itself: seen within the reach on both sides, per track, not at a track's end
+    s = np.arange(12) * 0.25
+    seen = np.ones(12, bool)
+    seen[[0, 5, 6]] = False
+    absent = ~seen
+    assert np.flatnonzero(dropouts(np.zeros(12, int), s, absent, seen)).tolist() == [5, 6]
+    assert not dropouts(np.zeros(12, int), s, absent, seen, reach_mm=0.3).any()
+    assert not dropouts(np.r_[np.zeros(6, int), np.ones(6, int)], s, absent, seen).any()
+
+
 def test_missing_bead_is_width_zero_and_flagged(gap_scene):
     man, smp, gone, g, reg = gap_scene
     tb = measure_widths(g, man, reg).table
