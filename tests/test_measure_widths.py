@@ -38,10 +38,9 @@ def test_width_sd_is_honest(kind):
     assert np.mean(np.abs(z) < 3) > 0.97
 
 
-@pytest.fixture(scope="module")
-def gap_scene():
-    """(manifest, stations, stations of track 3 that never printed (s 20-30 mm), grey 300
-    dpi render, registration): the scene with a 10 mm gap in one bead."""
+def _gap_render():
+    """(manifest, stations, stations of track 3 that never printed (s 20-30 mm), the 300 dpi
+    render of the scene with that 10 mm gap in one bead)."""
     from measure.camera import Camera
     from measure.render import render
     man = scene_manifest()
@@ -51,7 +50,15 @@ def gap_scene():
     w[gone] = 0.0
     truth = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
                        width_mm=w, width_sd_mm=np.zeros(len(w)), valid=np.ones(len(w), bool))
-    g = gray_of(render(man, truth, Camera.flatbed(scene_region(man), dpi=300), seed=4))
+    return man, smp, gone, render(man, truth, Camera.flatbed(scene_region(man), dpi=300), seed=4)
+
+
+@pytest.fixture(scope="module")
+def gap_scene():
+    """(manifest, stations, stations of track 3 that never printed (s 20-30 mm), grey 300
+    dpi render, registration): the scene with a 10 mm gap in one bead."""
+    man, smp, gone, r = _gap_render()
+    g = gray_of(r)
     return man, smp, gone, g, register(g, man)
 
 
@@ -64,17 +71,8 @@ def test_a_bead_seen_on_both_sides_of_a_short_gap_is_a_dropout_not_an_absence():
     notch of 16 um, 0.6 mm one of 75 um; so the misreading is made in the picture, a 0.6 mm
     band of the plate's grey across the bead. Without the rule its three stations are
     ``missing`` and their neighbours ``end``.)"""
-    from measure.camera import Camera
-    from measure.render import render
     from measure.widths import dropouts
-    man = scene_manifest()
-    smp = sample_points(man)
-    w = smp.width_nominal_mm.copy()
-    long_ = (smp.track == 3) & (smp.s_mm > 20) & (smp.s_mm < 30)
-    w[long_] = 0.0
-    truth = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
-                       width_mm=w, width_sd_mm=np.zeros(len(w)), valid=np.ones(len(w), bool))
-    r = render(man, truth, Camera.flatbed(scene_region(man), dpi=300), seed=4)
+    man, smp, long_, r = _gap_render()
     g = gray_of(r)
     # track 3 runs along x at y = 35 mm from x = 20: s = 40.25 mm lies at x = 60.25 mm
     corners = r.camera.project(np.array([[59.95, 34.3], [60.55, 34.3], [60.55, 35.7], [59.95, 35.7]]))
