@@ -126,7 +126,7 @@ TIP_REACH_MM = 0.35
 #: on the direct drive's seeds 1 and 0); the fit took each for a bead narrower than a
 #: pixel, and those terms, independent of the wobble that ties the valid widths together,
 #: pulled the width offset 25-34 um too negative (widths after the fit's offset 30.8 /
-#: 31.9 um RMS; 26.8 / 21.6 with the dropouts; docs/MEASUREMENT.md, "A bead seen on both
+#: 31.9 um RMS; 26.3 / 20.8 with the dropouts; docs/MEASUREMENT.md, "A bead seen on both
 #: sides of a gap").
 DROPOUT_REACH_MM = 1.0
 #: A track's blur takes its own level about the picture's blur plane from at least this
@@ -467,7 +467,10 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     if manifest is not None:
         flag[(flag == "") & _at_end(manifest, smp, w, w_ref, fit.params[:, 5])] = "end"
     # "faint" is not absence: no bead would be seen there either way
-    flag[(flag == "") & beside_absence(smp.track, smp.s_mm, flag == "missing")] = "end"
+    # ... and what made a dropout lies in its neighbours' strips and despeckling windows too:
+    # on the phone photos they read the 0.25 mm beads 5-11 um narrower than the rest, with
+    # a 5-6 um wider scatter
+    flag[(flag == "") & beside_absence(smp.track, smp.s_mm, np.isin(flag, ("missing", "dropout")))] = "end"
     blob = w > np.maximum(2.2 * w_ref, w_ref + 0.6)
     # where the track coasts (commanded 0) its own ooze is narrower than the bead that
     # stopped; something wider is a blob reaching in (the virtual start-stop rings' restore

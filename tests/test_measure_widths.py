@@ -65,8 +65,8 @@ def gap_scene():
 def test_a_bead_seen_on_both_sides_of_a_short_gap_is_a_dropout_not_an_absence():
     """A station that sees no bead between stations of its track that see it within 1 mm
     on either side misread the picture (measure/widths.py DROPOUT_REACH_MM): it is flagged
-    ``dropout``, not data for the fit, and its neighbours are measured (not tip stations);
-    a 10 mm gap in the same picture stays ``missing``. (A printer cannot lay so short a
+    ``dropout``, not data for the fit (its next neighbours are not measured either: their
+    strips hold what hid it), and the bead beyond is measured; a 10 mm gap in the same picture stays ``missing``. (A printer cannot lay so short a
     gap, and the renderer's deposition cannot either: a 0.3 mm stretch of zero width is a
     notch of 16 um, 0.6 mm one of 75 um; so the misreading is made in the picture, a 0.6 mm
     band of the plate's grey across the bead. Without the rule its three stations are
@@ -82,8 +82,11 @@ def test_a_bead_seen_on_both_sides_of_a_short_gap_is_a_dropout_not_an_absence():
     tb = measure_widths(g, man, register(g, man)).table
     short = (smp.track == 3) & (np.abs(smp.s_mm - 40.25) < 0.3)        # s = 40.0, 40.25, 40.5
     assert short.sum() == 3 and np.all(tb.flag[short] == "dropout") and not tb.valid[short].any()
-    near = (smp.track == 3) & (np.abs(smp.s_mm - 40.25) < 1.3) & ~short
-    assert np.all(tb.valid[near])                     # not tip stations ("end") of an absence
+    # what hid the bead lies in the strips of its neighbours too: they are not measured
+    # (0.25 mm away, "end"), the stations beyond them are
+    beside = (smp.track == 3) & np.isin(np.round(smp.s_mm, 2), (39.75, 40.75))
+    beyond = (smp.track == 3) & (np.abs(smp.s_mm - 40.25) > 0.6) & (np.abs(smp.s_mm - 40.25) < 1.3)
+    assert np.all(tb.flag[beside] == "end") and beyond.sum() == 6 and np.all(tb.valid[beyond])
     inner = long_ & (smp.s_mm > 21) & (smp.s_mm < 29)
     assert np.all(tb.flag[inner] == "missing")
     # the rule itself: seen within the reach on both sides, per track, not at a track's end
