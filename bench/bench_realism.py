@@ -251,6 +251,13 @@ def spread_rows(label: str, cam: str, per_seed: dict[int, dict]) -> list[Row]:
                      float(np.nanmedian(ab)), "mm", "<= 0.005", bool(np.nanmedian(ab) <= 0.005)),
                  Row("realism", f"{tag}: |width bias|, worst seed", float(np.nanmax(ab)), "mm", "<= 0.005",
                      bool(np.isfinite(ab).all() and np.nanmax(ab) <= 0.005))]
+    # the one-seed row above says seed 3's; a user's print is any seed (session 51: the
+    # phone's seed 3 kept 97 % of its stations, seeds 0 and 1 79-83 %)
+    valid = np.array([float(per_seed[s].get("valid", np.nan)) for s in seeds])
+    if np.isfinite(valid).any():
+        each_v = ", ".join(f"{s}: {100 * v:.0f} %" for s, v in zip(seeds, valid) if np.isfinite(v))
+        rows.append(Row("realism", f"{tag}: valid test stations, worst seed ({each_v})", float(np.nanmin(valid)),
+                        "fraction", ">= 0.90", bool(np.isfinite(valid).all() and valid.min() >= 0.90)))
     z = {s: offset_z(per_seed[s]) for s in seeds}
     each_z = ", ".join(f"{s}: {z[s]:+.1f}" for s in seeds if np.isfinite(z[s])) or "none applied"
     rows.append(Row("realism", f"{tag}: the width reference's calibration applied (its miss / its sd: {each_z})",

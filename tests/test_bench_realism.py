@@ -34,6 +34,20 @@ def test_spread_rows_on_a_phone_have_no_bias_rows_and_fail_on_a_lost_seed():
     assert not any("|width bias|" in r.metric for r in rows)
     worst = next(r for r in rows if r.metric.endswith("worst seed"))
     assert math.isclose(worst.value, 0.0149) and not worst.passed   # a seed that measured nothing fails
+    assert not any("valid test stations" in r.metric for r in rows)  # evaluate() gave no share
+
+
+def test_spread_rows_give_the_valid_share_of_the_worst_seed():
+    per_seed = {3: {**_f(16.9, 0.0, calibrated=False), "valid": 0.966},
+                0: {**_f(23.8, 0.0, calibrated=False), "valid": 0.794},
+                1: {**_f(18.2, 0.0, calibrated=False), "valid": 0.830}}
+    row = next(r for r in spread_rows("phone", "phone", per_seed) if "valid test stations" in r.metric)
+    assert math.isclose(row.value, 0.794) and not row.passed
+    assert "(0: 79 %, 1: 83 %, 3: 97 %)" in row.metric
+    for f in per_seed.values():
+        f["valid"] = 0.95
+    row = next(r for r in spread_rows("phone", "phone", per_seed) if "valid test stations" in r.metric)
+    assert row.passed
 
 
 def test_offset_coverage_counts_applied_offsets_by_their_own_sd():
