@@ -23,9 +23,10 @@ used by measure/widths.py), whichever image the widths are measured on.
 
 The projection replaces grey as a candidate only when it raises the contrast-to-noise ratio |m_bead - m_bg| / sd_bg
 by more than MIN_GAIN over grey (white or grey plastic on a neutral plate gains nothing),
-and it is used only when the widths measured on it scatter less (:func:`width_noise`):
-a JPEG stores colour at half resolution (4:2:0), which blurs and rings a chroma-weighted
-image more than the grey one.
+and it is used only when the widths measured on it scatter less (:func:`width_noise`)
+and read like grey's but for a constant (:func:`width_disagreement`): a JPEG stores
+colour at half resolution (4:2:0), which blurs and rings a chroma-weighted image more
+than the grey one.
 
 Colour at half resolution. A projection is luminance plus colour: every BGR channel is
 Y plus chroma terms, so (1) applied to a picture is (sum w) Y + c(u, v) with c the chroma
@@ -60,6 +61,13 @@ from patterns.manifest import Manifest, sample_points
 MIN_GAIN = 2.0
 #: ... and then only when the widths measured on it scatter this many times less.
 MIN_NOISE_GAIN = 1.25
+#: ... and when the widths it reads differ from grey's by no more than this (mm) between
+#: the commanded widths (:func:`width_disagreement`). A 4:2:0 JPEG's plain projection of a
+#: grained light plate scattered 12.7 um against grey's 17.3 but read the 0.25 mm beads
+#: 68 um narrow and the 1.2 mm ones 63 um wide (range 51 um against grey); where the
+#: projection pays (the light plate as a PNG, seeds 0, 1, 3; restored 4:2:0 JPEGs) the
+#: range was 4-24 um.
+MAX_WIDTH_DISAGREEMENT_MM = 0.035
 #: The colour axis decides presence (measure/widths.py) when it separates bead from plate
 #: by at least this many plate sds.
 PRESENCE_CNR = 6.0
@@ -115,6 +123,7 @@ class Channel:
     valid_gray: float = float("nan")
     valid_color: float = float("nan")
     chroma_restored: bool = False
+    width_disagreement_mm: float = float("nan")
 
     def to_dict(self) -> dict:
         return {"channel": "colour discriminant" if self.used else "grey",
@@ -123,6 +132,7 @@ class Channel:
                 "contrast_to_noise_colour": _finite(self.cnr_color),
                 "width_noise_um_grey": _finite(self.noise_gray_mm * 1e3),
                 "width_noise_um_colour": _finite(self.noise_color_mm * 1e3),
+                "width_disagreement_um": _finite(self.width_disagreement_mm * 1e3),
                 "chroma_restored": bool(self.chroma_restored)}
 
 
@@ -194,10 +204,14 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     # resolution and coarsely (JPEG), the projection's edges are blurred and ringing, and
     # on the dark-plate render with every phenomenon the widths scattered 18 um instead
     # of 3. Decide on what matters: the widths' scatter between neighbouring stations.
-    ch.noise_gray_mm, ch.valid_gray = width_noise(gray, color, manifest, registration)
-    ch.noise_color_mm, ch.valid_color = width_noise(img, color, manifest, registration)
+    at = sample_points(manifest, ds_mm=2.0)
+    tg, tc = (_noise_table(im, color, manifest, registration, at) for im in (gray, img))
+    ch.noise_gray_mm, ch.valid_gray = _noise(tg), float(np.mean(tg.valid)) if len(tg) else 0.0
+    ch.noise_color_mm, ch.valid_color = _noise(tc), float(np.mean(tc.valid)) if len(tc) else 0.0
+    ch.width_disagreement_mm = width_disagreement(tg, tc, at.width_nominal_mm)
     ch.used = bool(ch.noise_color_mm < ch.noise_gray_mm / MIN_NOISE_GAIN
-                   and ch.valid_color >= ch.valid_gray - 0.05)
+                   and ch.valid_color >= ch.valid_gray - 0.05
+                   and not ch.width_disagreement_mm > MAX_WIDTH_DISAGREEMENT_MM)
     return (img if ch.used else gray), ch
 
 
@@ -226,10 +240,33 @@ def width_noise(img, color, manifest: Manifest, registration, ds_mm: float = 2.0
     ``ds_mm``: the robust sd of the difference between consecutive valid stations of a
     track over sqrt 2 (a bead's width changes in steps: the median absolute difference
     ignores them)."""
+    t = _noise_table(img, color, manifest, registration, sample_points(manifest, ds_mm=ds_mm))
+    return _noise(t), float(np.mean(t.valid)) if len(t) else 0.0
+
+
+def width_disagreement(t_gray, t_color, width_nominal_mm) -> float:
+    """Range (mm) over the commanded widths ``width_nominal_mm`` (mm, one per station) of the
+    median difference between the widths measured on the projection and on grey at the
+    same stations (both valid; >= 10 a width), NaN with fewer than two widths. A constant
+    difference is the apparent width's business (measure/calibrate.py); one that changes
+    with the width is an edge that one of the two images moves, and the scatter between
+    neighbours does not show it."""
+    both = t_gray.valid & t_color.valid
+    wc = np.round(np.asarray(width_nominal_mm, float), 3)
+    meds = [float(np.median((t_color.width_mm - t_gray.width_mm)[both & (wc == w)]))
+            for w in np.unique(wc[both & np.isfinite(wc)]) if (both & (wc == w)).sum() >= 10]
+    return max(meds) - min(meds) if len(meds) >= 2 else float("nan")
+
+
+def _noise_table(img, color, manifest: Manifest, registration, at):
+    """The widths measured on ``img`` at the stations ``at`` (patterns.manifest.Samples)."""
     from measure.widths import measure_widths
 
-    t = measure_widths(img, sample_points(manifest, ds_mm=ds_mm), registration, manifest=manifest,
-                       color=color).table
+    return measure_widths(img, at, registration, manifest=manifest, color=color).table
+
+
+def _noise(t) -> float:
+    """:func:`width_noise`'s robust sd (mm) of the table ``t``."""
     d = []
     for k in np.unique(t.track):
         q = (t.track == k) & t.valid
@@ -237,8 +274,7 @@ def width_noise(img, color, manifest: Manifest, registration, ds_mm: float = 2.0
         j = i[:-1][np.diff(i) == 1]
         d.append(t.width_mm[j + 1] - t.width_mm[j])
     d = np.concatenate(d) if d else np.zeros(0)
-    noise = 1.4826 * float(np.median(np.abs(d))) / np.sqrt(2) if len(d) >= 20 else float("nan")
-    return noise, float(np.mean(t.valid)) if len(t) else 0.0
+    return 1.4826 * float(np.median(np.abs(d))) / np.sqrt(2) if len(d) >= 20 else float("nan")
 
 
 def _cnr(bead, plate) -> float:

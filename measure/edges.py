@@ -274,17 +274,18 @@ def fit_profiles(t, y, p0, fixed_s: bool = False, weights=None, n_iter: int = 30
 
 
 def fit_streak(t, y, p_plain, side: float, height_mm, fixed_s: bool = True, weights=None,
-               n_iter: int = 30, chunk: int = 4000) -> ProfileFit:
+               n_iter: int = 30, chunk: int = 4000, flank: tuple[float, float] = STREAK_FLANK) -> ProfileFit:
     """The edge pair plus a glare streak on one flank (module docstring), started from a
     plain fit ``p_plain`` (N, 6); the blur is held at its value unless ``fixed_s`` is False.
     ``side`` -1: the streak is on the low-t edge, +1 on the high-t edge. ``height_mm``
-    (scalar or (N,)) the bead height, which bounds the streak's depth to the flank. Returns
+    (scalar or (N,)) the bead height, which bounds the streak's depth to the flank:
+    ``flank`` (fractions of h/2; equal ends hold the depth there). Returns
     params (N, 8) in STREAK_PARAMS order. Compare its ``rms`` with the plain fit's to
     decide whether a streak is there."""
     p_plain = np.asarray(p_plain, float)
     n = len(p_plain)
     r = 0.5 * np.broadcast_to(np.asarray(height_mm, float), (n,))
-    lo, hi = STREAK_FLANK[0] * r, STREAK_FLANK[1] * r
+    lo, hi = flank[0] * r, flank[1] * r
     amp = np.abs(p_plain[:, 2:3])
     p0 = np.column_stack([p_plain, 0.05 * amp, 0.5 * (lo + hi)])
     return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=float(side),
@@ -377,7 +378,15 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
         act = act[~done]
     dof = np.maximum(m_eff - npar, 1)
     var = cost / dof
-    cov = _safe_inv(JTJ) * var[:, None, None]
+    # the streak's depth (or brightness) on its bound is held there in the covariance: the
+    # linearised one with it free read a trade the bound never allows (phone renders: the
+    # width's sd 15x its peers'). The edge pair's own bounds only keep a failed fit
+    # physical, and its wide sd is how the failure shows: not held.
+    pf = p[:, free]
+    tol = 1e-9 * (np.abs(pf) + span[:, None])
+    held = ((pf <= lo + tol) | (pf >= hi - tol)) & (np.asarray(free) >= len(PARAMS))
+    A = JTJ * (~held[:, :, None] & ~held[:, None, :]) + held[:, :, None] * eye
+    cov = _safe_inv(A) * var[:, None, None] * ~held[:, :, None]
     sd = np.full(p.shape, np.nan)
     sd[:, free] = np.sqrt(np.clip(np.einsum("nii->ni", cov), 0, None))
     if fixed_s:

@@ -143,6 +143,56 @@ def test_a_parameter_held_at_its_bound_gives_the_bounded_least_squares_optimum()
         assert fit.rms[i] ** 2 * (t.shape[1] - 7) == pytest.approx(2 * ref.cost, rel=1e-6)
 
 
+def test_a_parameter_on_its_bound_is_held_there_in_the_covariance():
+    """Known answer: the streak's depth on its bound (true 0.02 mm, bound 0.04) gives the
+    fit with the depth held there from the start, its width's sd included; with the depth
+    left free in the linearised covariance the width's sd read a trade the bound never
+    allows (phone renders: 15x the sd of the stations without a streak)."""
+    from measure.edges import STREAK_FLANK, fit_streak
+
+    rng = np.random.default_rng(5)
+    n, s, h = 40, 0.05, 0.2
+    w = rng.uniform(0.4, 0.9, n)
+    t = np.linspace(-1, 1, 150)[None] * (w / 2 + 0.5)[:, None]
+    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), rng.normal(0, 0.02, n), w, np.full(n, s)])
+    cg = p[:, 3] + (w / 2 - 0.02)
+    y = edge_pair(t, p) + 0.3 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.01, t.shape)
+    plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
+    free = fit_streak(t, y, plain.params, 1.0, height_mm=h)
+    held = fit_streak(t, y, plain.params, 1.0, height_mm=h, flank=(STREAK_FLANK[0],) * 2)
+    on = np.isclose(free.params[:, 7], STREAK_FLANK[0] * h / 2, rtol=1e-9)
+    assert on.sum() >= 0.9 * n
+    np.testing.assert_allclose(free.width[on], held.width[on], atol=2e-5)
+    np.testing.assert_allclose(free.width_sd[on], held.width_sd[on], rtol=2e-3)
+    assert np.all(free.sd[on, 7] == 0.0)
+
+
+def test_under_a_phones_blur_the_streak_sits_at_one_depth_for_the_scan():
+    """A phone's blur (0.16 mm) is wider than the flank (0.1 mm): a streak 0.07 mm inside
+    the edge trades with it, and each station's free depth ends on a bound and reads its
+    bead 16 um RMS off. The scan's one light puts every streak at one depth, found from
+    the stations whose depth the data did fix: within 6 um. Beads under 2.5 blurs wide
+    (0.25 mm) are not tried: there the blurred streak is a bump of the bead's own shape."""
+    from measure.edges import fit_streak
+    from measure.widths import _with_glare_streaks
+
+    rng = np.random.default_rng(7)
+    n, s = 600, 0.16
+    w = np.where(rng.uniform(size=n) < 0.2, 0.25, rng.uniform(0.5, 1.6, n))
+    t = np.linspace(-1, 1, 160)[None] * (w / 2 + 0.6)[:, None]
+    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), np.zeros(n), w, np.full(n, s)])
+    y = (edge_pair(t, p) + 0.15 * np.exp(-0.5 * ((t - (w / 2 - 0.07)[:, None]) / s) ** 2)
+         + rng.normal(0, 0.01, t.shape))
+    plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
+    fit, streak = _with_glare_streaks(t, y, plain, np.ones_like(y), np.full(n, 0.2), np.tile([1.0, 0.0], (n, 1)))
+    wide = w > 0.4
+    assert streak[wide].all() and not streak[~wide].any()
+    assert np.sqrt(np.mean((fit.width - w)[wide] ** 2)) < 0.006                   # mm
+    each = fit_streak(t[wide], y[wide], plain.params[wide], 1.0, height_mm=0.2)
+    assert np.sqrt(np.mean((each.width - w[wide]) ** 2)) > 0.012
+    np.testing.assert_array_equal(fit.params[~wide], plain.params[~wide])
+
+
 @pytest.mark.parametrize("share_facing, expect", [(1.0, "all"), (0.7, "none")])
 def test_streaks_are_believed_only_when_their_sides_agree_on_one_light(share_facing, expect):
     """400 stations, every profile with a strong streak; ``share_facing`` of them on the

@@ -267,16 +267,17 @@ def test_a_coloured_bead_on_a_grained_light_plate_is_measured_in_colour(seed, co
 
 def test_half_resolution_jpeg_colour_is_restored_before_the_widths_use_it(tmp_path):
     """A 4:2:0 JPEG stores colour at half resolution. The plain colour projection of this
-    grained light-plate scene (seed 2) was once chosen on its scatter (13 um against 17 in
-    grey) and read the widths 55 um wide (RMS 90 um, grey 19); since the edge fit holds a
-    parameter on its bound properly (measure/edges.py, projected LM) its scatter reads 20
-    um and it is refused. Restored by the guided filter (measure/contrast.py (2)) it reads
+    grained light-plate scene (seed 2) scatters less than grey between neighbours (13 um
+    against 17) but reads the 0.25 mm beads 68 um narrow and the 1.2 mm ones 63 um wide
+    (RMS 53 um, grey 13): it is refused because its widths disagree with grey's from one
+    commanded width to another (measure/contrast.py MAX_WIDTH_DISAGREEMENT_MM; the scatter
+    alone let it through). Restored by the guided filter (measure/contrast.py (2)) it reads
     the widths like grey and scatters less. The header tells which JPEGs halve the colour
     (measure/imageio.py)."""
     import cv2
 
     from measure.camera import Camera
-    from measure.contrast import bead_channel
+    from measure.contrast import MIN_NOISE_GAIN, bead_channel
     from measure.imageio import jpeg_chroma_subsampled, load_image
     from measure.render import render
     man = scene_manifest()
@@ -300,6 +301,7 @@ def test_half_resolution_jpeg_colour_is_restored_before_the_widths_use_it(tmp_pa
     _, grey = err(g)
     plain, ch = bead_channel(g, col, man, reg)
     assert not ch.used and not ch.chroma_restored and plain is g
+    assert ch.noise_color_mm < ch.noise_gray_mm / MIN_NOISE_GAIN and ch.width_disagreement_mm > 0.035
     img, ch = bead_channel(g, col, man, reg, chroma_halved=True)
     bias, rms = err(img)
     assert ch.chroma_restored and abs(bias) < 0.01 and rms < 1.25 * grey
