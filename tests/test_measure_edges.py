@@ -108,6 +108,18 @@ def test_compiled_normal_equations_match_finite_differences(fixed_s, side):
                                atol=1e-6 * np.abs(JTr).max())
 
 
+def _shallow_streak(n, s):
+    """(t, y, true widths, plain fit) of n profiles with a strong streak 0.02 mm inside the
+    +t edge, shallower than the flank allows at bead height 0.2 mm (blur ``s`` mm)."""
+    rng = np.random.default_rng(5)
+    w = rng.uniform(0.4, 0.9, n)
+    t = np.linspace(-1, 1, 150)[None] * (w / 2 + 0.5)[:, None]
+    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), rng.normal(0, 0.02, n), w, np.full(n, s)])
+    cg = p[:, 3] + (w / 2 - 0.02)
+    y = edge_pair(t, p) + 0.3 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.01, t.shape)
+    return t, y, w, fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
+
+
 def test_a_parameter_held_at_its_bound_gives_the_bounded_least_squares_optimum():
     """A streak deeper inside its edge than the flank allows (0.02 mm for a bound of 0.04
     at bead height 0.2 mm): the depth rests on its bound and the rest is fitted around it.
@@ -117,14 +129,8 @@ def test_a_parameter_held_at_its_bound_gives_the_bounded_least_squares_optimum()
 
     from measure.edges import STREAK_FLANK, fit_streak
 
-    rng = np.random.default_rng(5)
     n, s, h = 12, 0.05, 0.2
-    w = rng.uniform(0.4, 0.9, n)
-    t = np.linspace(-1, 1, 150)[None] * (w / 2 + 0.5)[:, None]
-    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), rng.normal(0, 0.02, n), w, np.full(n, s)])
-    cg = p[:, 3] + (w / 2 - 0.02)
-    y = edge_pair(t, p) + 0.3 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.01, t.shape)
-    plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
+    t, y, w, plain = _shallow_streak(n, s)
     fit = fit_streak(t, y, plain.params, 1.0, height_mm=h, n_iter=12)
     lo_d, hi_d = STREAK_FLANK[0] * h / 2, STREAK_FLANK[1] * h / 2
     np.testing.assert_allclose(fit.params[:, 7], lo_d)
@@ -152,14 +158,8 @@ def test_a_depth_held_for_the_scan_is_held_in_the_covariance_too():
     bound keeps its trade in the sd."""
     from measure.edges import STREAK_FLANK, fit_streak
 
-    rng = np.random.default_rng(5)
     n, s, h, frac = 8, 0.05, 0.2, 0.7
-    w = rng.uniform(0.4, 0.9, n)
-    t = np.linspace(-1, 1, 150)[None] * (w / 2 + 0.5)[:, None]
-    p = np.column_stack([np.full(n, 0.1), np.zeros(n), np.full(n, 0.6), rng.normal(0, 0.02, n), w, np.full(n, s)])
-    cg = p[:, 3] + (w / 2 - 0.02)
-    y = edge_pair(t, p) + 0.3 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.01, t.shape)
-    plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
+    t, y, w, plain = _shallow_streak(n, s)
     held = fit_streak(t, y, plain.params, 1.0, height_mm=h, flank=(frac, frac))
     d = frac * h / 2
     np.testing.assert_allclose(held.params[:, 7], d)
