@@ -1059,8 +1059,10 @@ def _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s):
     curv = c0 - 2 * c1 + c2
     d = float(np.clip(grid[j] + (0.5 * STREAK_DEPTH_STEP * (c0 - c2) / curv if curv > 0 else 0.0), lo, hi))
     f = refit(on, d)
+    # a station whose held fit failed keeps its free one
+    on, f = on[f.ok], edges.ProfileFit(f.params[f.ok], f.sd[f.ok], f.rms[f.ok], f.ok[f.ok])
     out = edges.ProfileFit(best.params.copy(), best.sd.copy(), best.rms.copy(), best.ok.copy())
-    out.params[on], out.sd[on], out.rms[on], out.ok[on] = f.params, f.sd, f.rms, f.ok
+    out.params[on], out.sd[on], out.rms[on] = f.params, f.sd, f.rms
     return out
 
 
