@@ -190,11 +190,13 @@ def test_misfit_is_flagged_and_the_right_model_is_not(tmp_path, capsys):
     bad, cap = docs["pa"]
     assert bad["trust"]["trustworthy"] is False and bad["information"]["chi2_nu"] > 2
     assert "does not fit" in cap.err and "diagnose" in cap.err
+    # said before the sampler runs, too
+    assert "already misfits the scan" in cap.err
     assert "M900" not in cap.out and "NOT TRUSTWORTHY" in cap.out
     assert main(["export", str(tmp_path / "pa.json"), "--to", "klipper"]) == 2
     good, cap = docs["pa+thermal"]
     assert good["trust"]["trustworthy"] is True, good["trust"]["problems"]
-    assert "fit quality: OK" in cap.out and "M900 K" in cap.out
+    assert "fit quality: OK" in cap.out and "M900 K" in cap.out and "misfits" not in cap.err
     lo, hi = good["params"]["pa.tau_s"]["ci95"]
     assert lo < 0.05 < hi
 

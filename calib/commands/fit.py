@@ -139,6 +139,13 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         if info:
             print(f"calib fit: width calibration: {doubt_text(info)}; the sds carry it", file=sys.stderr)
         return m, problem
+    if m.chi2_nu_bead > chi2_max:
+        # Said before the sampler's minutes (15 on a realdata photo), not only at the end:
+        # no posterior makes a misfitting model's values trustworthy (fit/trust.py)
+        print(f"calib fit: the best fit of {model_spec} already misfits the scan (reduced chi-square "
+              f"{m.chi2_nu_bead:.3g} > {chi2_max:g} with the bead's own wobble allowed): its values will be "
+              f"NOT TRUSTWORTHY (the verdict at the end says why and what to do); sampling the posterior "
+              f"anyway (--map-only skips it)", file=sys.stderr)
     res = fit_mcmc(problem, map_result=m, max_steps=max_steps, max_time_s=max_time_s, seed=seed,
                    progress=progress)
     res.model = model_spec
