@@ -100,7 +100,7 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
                    f"the best candidate ({best.effect}) lowers BIC by only {best.delta_bic:.1f}"
                    if best.delta_bic < min_delta_bic else
                    f"the best candidate ({best.effect}) raises the reduced chi-square "
-                   f"({base.chi2_nu:.2f} -> {best.chi2_nu_after:.2f})" if best.effect in NUISANCE else
+                   f"({base.chi2_nu:.2f} -> {best.chi2_nu_after:.2f})" if best.chi2_nu_after > base.chi2_nu else
                    f"the best candidate ({best.effect}) lowers the reduced chi-square by less "
                    f"than {100 * min_chi2_drop:.0f} % ({base.chi2_nu:.2f} -> {best.chi2_nu_after:.2f})")
             # judged as the trust verdict judges it: on realistic renders the right model

@@ -106,3 +106,16 @@ def test_a_nuisance_joins_on_bic_alone_unless_it_raises_the_misfit(monkeypatch):
         ((0.010, 4.9, -27.0), [("heading", 3.0, 4.8)])]))
     r = auto_model(None, None, [], [], base_spec="pa")
     assert [s.model for s in r.steps] == ["pa", "pa+spread"]
+
+
+def test_a_leader_that_raises_the_misfit_is_said_to_raise_it(monkeypatch):
+    """The stop reason says what the BIC's leader did to chi2_nu: realdata StartStopTestPLA1's
+    chain stopped on `kalico_tanh` (224.22 -> 231.08) and said it lowered chi2_nu "by less
+    than 5 %"."""
+    import fit.auto
+    monkeypatch.setattr(fit.auto, "diagnose", _fake_diagnose([
+        ((0.30, 224.22, 0.0), [("kalico_tanh", 40.0, 231.08), ("bed_tilt", 8.0, 200.0)])]))
+    r = auto_model(None, None, [], [], base_spec="pa+scan_bias+backpressure")
+    assert len(r.steps) == 1 and "no library effect explains the rest" in r.stop
+    assert "(kalico_tanh) raises the reduced chi-square (224.22 -> 231.08)" in r.stop
+    assert "less than 5 %" not in r.stop
