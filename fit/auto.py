@@ -90,6 +90,10 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
             best = nuis[0]
         if len(res.steps) > max_rounds:
             res.stop = f"stopped after {max_rounds} added effects"
+            if base.chi2_nu_bead > chi2_max:    # the cap, not the data, ended it: say what is left
+                cov = res.top_covariate or "no covariate in particular"
+                res.stop += (f", and the model still does not fit: chi2_nu_bead {base.chi2_nu_bead:.2f} > "
+                             f"{chi2_max:g}; the residuals line up with {cov}")
             break
         # "the fit improves": chi2_nu falls by min_chi2_drop of itself. A BIC gain without it
         # comes from the noise model (extra noise, AR(1) length) re-balancing, not from physics

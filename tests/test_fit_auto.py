@@ -119,3 +119,20 @@ def test_a_leader_that_raises_the_misfit_is_said_to_raise_it(monkeypatch):
     assert len(r.steps) == 1 and "no library effect explains the rest" in r.stop
     assert "(kalico_tanh) raises the reduced chi-square (224.22 -> 231.08)" in r.stop
     assert "less than 5 %" not in r.stop
+
+
+def test_a_chain_stopped_by_its_cap_says_when_the_model_still_misfits(monkeypatch):
+    """realdata SpStartStopTest2 with the chain tried in session 53: four effects added,
+    chi2_nu_bead 106 -> 33, and the stop reason only said "stopped after 4 added effects"."""
+    import fit.auto
+    rounds = [((0.16, 780.0 - 100 * k, -100.0 * k), [(e, 100.0, 680.0 - 100 * k)])
+              for k, e in enumerate(("backpressure", "heading", "nonlinear", "spread", "thermal"))]
+    monkeypatch.setattr(fit.auto, "diagnose", _fake_diagnose(rounds))
+    r = auto_model(None, None, [], [], base_spec="pa+scan_bias", max_rounds=4)
+    assert len(r.steps) == 5 and r.stop.startswith("stopped after 4 added effects")
+    assert "still does not fit" in r.stop and "speed_mm_s" in r.stop
+
+    monkeypatch.setattr(fit.auto, "diagnose", _fake_diagnose([((0.01, 1.2, 0.0), [("thermal", 30.0, 1.0)]),
+                                                             ((0.01, 1.0, -30.0), [("spread", 30.0, 0.9)])]))
+    r = auto_model(None, None, [], [], base_spec="pa", max_rounds=1)
+    assert r.stop == "stopped after 1 added effects"
