@@ -192,6 +192,8 @@ def test_misfit_is_flagged_and_the_right_model_is_not(tmp_path, capsys):
     assert "does not fit" in cap.err and "diagnose" in cap.err
     # said before the sampler runs, too
     assert "already misfits the scan" in cap.err
+    # widths from the virtual printer have no `calib measure` summary beside them: said
+    assert "no `calib measure` summary (t.summary.json)" in cap.err
     assert "M900" not in cap.out and "NOT TRUSTWORTHY" in cap.out
     assert main(["export", str(tmp_path / "pa.json"), "--to", "klipper"]) == 2
     good, cap = docs["pa+thermal"]

@@ -129,6 +129,15 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
                                    any(n.startswith("view_shift.") for n in problem.param_names))
     for n in meas_notes:
         print(f"calib fit: {n}", file=sys.stderr)
+    for st in states:
+        if st["widths"] and st["calibration"] is None:
+            # Said, not assumed: a phone render's widths fitted without their summary (35 deg,
+            # Bowden, seed 1) lost scan_bias's prior from the width reference and read tau
+            # 0.887 [0.827, 0.965] for 0.8; with it 0.842 [0.786, 0.906]
+            print(f"calib fit: {st['scan']}: no `calib measure` summary "
+                  f"({Path(st['widths']).stem}.summary.json) beside its widths, so nothing says whether "
+                  f"they are true or apparent widths: they are fitted as given; if `calib measure` wrote "
+                  f"them, keep its summary next to them", file=sys.stderr)
     m = fit_map(problem, seed=seed, global_search=True)
     if map_only:
         from fit.offset_envelope import doubt_text, widen_map_offset
