@@ -135,8 +135,8 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
             # Bowden, seed 1) lost scan_bias's prior from the width reference and read tau
             # 0.887 [0.827, 0.965] for 0.8; with it 0.842 [0.786, 0.906]
             print(f"calib fit: {st['scan']}: no `calib measure` summary "
-                  f"({Path(st['widths']).stem}.summary.json) beside its widths, so nothing says whether "
-                  f"they are true or apparent widths: they are fitted as given; if `calib measure` wrote "
+                  f"({Path(st['widths']).stem}.summary.json) beside its widths, so nothing says how "
+                  f"they were measured or calibrated: they are fitted as given; if `calib measure` wrote "
                   f"them, keep its summary next to them", file=sys.stderr)
     m = fit_map(problem, seed=seed, global_search=True)
     if map_only:
