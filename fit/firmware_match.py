@@ -73,8 +73,14 @@ KLIPPER_SMOOTH_TIME_S = 0.040
 #: to it: the floor is half Klipper's default, not 0, so the value stays one a real
 #: extruder follows.
 SMOOTH_MIN_S, SMOOTH_MAX_S = 0.020, 0.200
-#: upper bound of the linear K search, as a multiple of the fitted tau (and at least 0.2 s)
+#: upper bound of the linear K search, as a multiple of the fitted tau (and at least 0.2 s);
+#: an optimum on it doubles it, up to K_LIMIT_S
 K_MAX_FACTOR = 4.0
+#: the largest linear K (s) searched: Marlin's M900 takes K up to 10; Bowden printers measure
+#: 0.3-1.5 s (REFERENCE), so an optimum at 5 s is no printer's but a fit's that says nothing there
+K_LIMIT_S = 5.0
+#: an optimum within this fraction of the search's upper bound is on it
+EDGE_FRACTION = 0.01
 #: at most this much printing time (s) of a user's G-code is simulated
 MAX_REFERENCE_S = 90.0
 #: a reference flow this much above the highest tested flow is an extrapolation
@@ -540,15 +546,25 @@ def optimal_linear(phys: Physics, ref: Reference, *, smooth_time_s: float = 0.0,
             th[jk], th[js] = k, st
             return _rms_one(phys, ref, th)
 
-        r = minimize_scalar(f_k, bounds=(0.0, k_max_s), method="bounded",
-                            options={"xatol": 1e-4 * max(k0, 1e-3)})
+        # The start bound comes from the fitted tau, which is not the whole advance when a
+        # nonlinear term carries it: a foreign Bowden printer fitted as pa+kalico_recip (tau
+        # 0.04 s, the reciprocal term the rest) had its optimum on the 0.2 s bound on every
+        # draw, exported as 0.2000 [0.2000, 0.2000] (bench_export_foreign). An optimum on the
+        # bound is no optimum: search again above it.
+        hi = k_max_s
+        while True:
+            r = minimize_scalar(f_k, bounds=(0.0, hi), method="bounded",
+                                options={"xatol": 1e-4 * max(k0, 1e-3)})
+            if r.x < (1.0 - EDGE_FRACTION) * hi or hi >= K_LIMIT_S:
+                break
+            hi = min(2.0 * hi, K_LIMIT_S)
         k_best, st_best, f_best = float(r.x), smooth_time_s, float(r.fun)
         if free_smooth:
             sc = np.array([max(k_best, 1e-3), KLIPPER_SMOOTH_TIME_S])
             st0 = min(max(smooth_time_s or KLIPPER_SMOOTH_TIME_S, SMOOTH_MIN_S), SMOOTH_MAX_S)
             r2 = minimize(lambda z: f_k(z[0] * sc[0], z[1] * sc[1]),
                           x0=np.array([k_best / sc[0], st0 / sc[1]]), method="Nelder-Mead",
-                          bounds=[(0.0, k_max_s / sc[0]), (SMOOTH_MIN_S / sc[1], SMOOTH_MAX_S / sc[1])],
+                          bounds=[(0.0, hi / sc[0]), (SMOOTH_MIN_S / sc[1], SMOOTH_MAX_S / sc[1])],
                           options={"xatol": 2e-3, "fatol": 1e-7, "maxfev": 80})
             if r2.fun < f_best or smooth_time_s < SMOOTH_MIN_S:
                 k_best, st_best, f_best = float(r2.x[0] * sc[0]), float(r2.x[1] * sc[1]), float(r2.fun)
@@ -596,6 +612,8 @@ class MatchResult:
     flow_reference_mm3_s: tuple
     flow_tested_mm3_s: tuple | None
     notes: list = field(default_factory=list)
+    #: draws whose width-optimal K lies at the search's limit K_LIMIT_S (not a measurement)
+    n_at_limit: int = 0
 
     @property
     def extrapolates(self) -> bool:
@@ -671,6 +689,12 @@ def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_fr
         opt = optimal_linear(phys, ref, smooth_time_s=st_fixed, free_smooth=smooth_free,
                              on_draw=on_draw)
         optimised = True
+    n_lim = int(np.sum(opt["k_s"] >= (1.0 - EDGE_FRACTION) * K_LIMIT_S)) if optimised else 0
+    if n_lim:
+        notes.append(f"the width-optimal K of {n_lim} of {n} draws lies at the search's limit "
+                     f"({K_LIMIT_S:g} s): the fitted physics wants more advance than any printer "
+                     f"takes, so the value is not a measurement; do not paste it, check the fit "
+                     f"with `calib diagnose`")
     k_sum, st_sum = summarize_draws(opt["k_s"]), summarize_draws(opt["smooth_time_s"])
     k_exp = k_sum["median"]
     st_exp = st_sum["median"] if optimised and smooth_free else st_fixed
@@ -713,4 +737,4 @@ def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_fr
                        {"median": st_fixed, "ci95": [st_fixed, st_fixed]},
                        smooth_free=bool(optimised and smooth_free), rms_opt_um=rms_opt, rows=rows,
                        settings=settings, n_draws=n, flow_reference_mm3_s=ref.flow_mm3_s,
-                       flow_tested_mm3_s=tested_flow_of(doc), notes=notes)
+                       flow_tested_mm3_s=tested_flow_of(doc), notes=notes, n_at_limit=n_lim)

@@ -96,6 +96,41 @@ def test_nonlinear_physics_optimal_k_beats_tau_and_no_pa(ref, spec, values):
     assert e[1] < e[0] and e[1] < e[2]
 
 
+def test_an_advance_carried_by_a_nonlinear_term_is_searched_past_the_first_bound(ref):
+    # tau 0.02 s, the reciprocal term the rest: Preq / v = 0.02 + off / (v + v_lin), 0.2-0.6 s
+    # at the move mix's filament speeds (0.8-7 mm/s). The search starts at max(4 tau, 0.2 s); an optimum
+    # on that bound was exported as 0.2000 [0.2000, 0.2000] (bench_export_foreign).
+    truth = {"pa.tau_s": 0.02, "kalico_recip.off_mm": 3.0, "kalico_recip.v_lin_mm_s": 3.0}
+    phys = fm.physics_from_fit(fit_doc(truth, "pa+kalico_recip", n=4, rel_sd=0.0), n_draws=1)
+    k = float(fm.optimal_linear(phys, ref, smooth_time_s=0.0)["k_s"][0])
+    grid = np.linspace(0.05, 1.5, 59)
+    e = fm.width_errors_mm(phys, ref, fm._theta_for(phys, [fm.Setting("linear", g, 0.0) for g in grid]))["all"]
+    assert k > 0.25                                        # past the first bound, ...
+    assert abs(k - grid[np.argmin(e)]) <= 0.03             # ... at the grid's minimum
+    e_k = fm.width_errors_mm(phys, ref, fm._theta_for(phys, [fm.Setting("linear", k, 0.0)]))["all"][0]
+    assert e_k <= e.min() + 1e-5
+
+
+def test_an_optimum_at_the_search_limit_is_said_not_to_be_a_measurement(ref, tmp_path, capsys):
+    # an advance no printer has (off 500 mm, about 10 s): the K search ends at its 5 s limit
+    truth = {"pa.tau_s": 0.02, "kalico_recip.off_mm": 500.0, "kalico_recip.v_lin_mm_s": 50.0}
+    doc = fit_doc(truth, "pa+kalico_recip", n=4, rel_sd=0.0)
+    m = fm.match_firmware(doc, ref, smooth_time_s=0.0, n_draws=2)
+    assert m.k_s["median"] >= 0.99 * fm.K_LIMIT_S and m.n_at_limit == 2
+    assert any("search's limit" in n and "do not paste" in n for n in m.notes)
+    # `calib export` refuses it with one line and leaves the profile as it was
+    fit = write(tmp_path, doc)
+    cfg = tmp_path / "start.gcode"
+    cfg.write_text("M900 K0.05\n")
+    capsys.readouterr()
+    assert main(["export", fit, "--to", "marlin", "--profile", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "lies at the search's limit: nothing to paste" in err and "Traceback" not in err
+    assert cfg.read_text() == "M900 K0.05\n"
+    assert main(["export", fit, "--to", "marlin", "--profile", str(cfg), "--force"]) == 0
+    assert cfg.read_text().startswith("M900 K5.0") or cfg.read_text().startswith("M900 K4.9")
+
+
 def test_export_prints_the_optimal_k_with_interval_and_the_table(tmp_path, capsys):
     derived = {"tested_flow_mm3_s": {"lo": 0.5, "hi": 20.0},
                "kalico_tanh": {"pressure_advance_s": {"median": 0.02}, "offset_mm": {"median": 0.05},

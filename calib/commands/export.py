@@ -575,6 +575,9 @@ def run(args) -> int:
         m = width_match(doc, as_target, args.on)
         if m is not None:
             report_match(m, as_target)
+            if m.n_at_limit and not args.force:
+                raise UserError(f"the width-optimal K of {m.n_at_limit} of {m.n_draws} posterior draws "
+                                f"lies at the search's limit: nothing to paste (--force exports it anyway)")
             doc = with_match(doc, m)
     warn = firmware_warning(doc, args.to)
     if warn:
