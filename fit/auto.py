@@ -41,6 +41,9 @@ class AutoResult:
     steps: list[AutoStep] = field(default_factory=list)
     stop: str = ""
     top_covariate: str | None = None
+    #: the chosen model's MAP found by the chain (parameter name -> value): the final fit
+    #: starts from it too (calib/commands/fit.py run_fit)
+    map_values: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {"model": self.model, "steps": [asdict(s) for s in self.steps], "stop": self.stop,
@@ -122,6 +125,7 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
         res.steps.append(AutoStep(spec, base.rms_mm, base.chi2_nu, base.bic, best.delta_bic,
                                   base.chi2_nu_bead, d.tied if best.effect == d.best else []))
     res.model = spec
+    res.map_values = dict(base.map.values)
     return res
 
 
