@@ -73,3 +73,35 @@ def test_rendered_probe_is_measured_as_the_foreign_printer_laid_it():
     away = (np.abs(t.s_mm - stop) > 1.0) & (tru > 0.3)
     ratio = tru[away] / np.array([laid[(k, s)] for k, s in zip(t.track[away], np.round(t.s_mm[away], 3))])
     assert np.all(np.abs(ratio - 1.0) < 0.1)
+
+
+def test_linear_advance_at_tau_cancels_the_plain_springs_lag():
+    """Marlin's LA on this printer (``with_linear_advance``): E + K ve gives the spring
+    P = tau ve at K = tau, so the nozzle's outflow is the commanded flow (dP/dt = ve + K dve/dt
+    - P / tau; P = tau ve solves it): within 1 % of the commanded peak while printing, where
+    without advance it lags by the spring's whole response. No retractions: an un-retraction
+    fills the spring itself, which no advance is meant to cancel."""
+    man = probe_manifest(n_tracks=2, length_mm=40.0, retract_mm=0.0)
+    af = np.pi * 1.75 ** 2 / 4
+
+    def lag(k_s):
+        rec = {}
+        fp.simulate(fp.with_linear_advance(man, k_s), TAU_S, None, {}, record=rec)
+        t, q = rec["t_s"], rec["q_mm3_s"]
+        tl = man.timeline
+        ve = np.interp(t, tl.t_s, tl.ve_mm_s)
+        on = np.interp(t, tl.t_s, ((tl.ve_mm_s > 0) & (tl.v_mm_s > 1e-6)).astype(float)) > 0.999
+        return np.max(np.abs(q[on] - ve[on] * af)) / np.max(ve[on] * af)
+
+    assert lag(TAU_S) < 0.01 < 0.5 < lag(0.0)
+
+
+def test_the_foreign_printers_best_advance_is_near_tau_and_beats_none():
+    from fit import firmware_match as fm
+    from patterns.profile import load_profile
+
+    ref = fm.standard_reference(load_profile("adventurer3"))
+    k, e = fp.optimal_advance(ref, TAU_S, None, {})
+    # not tau exactly: the Gaussian footprint rounds each line's ends whatever the flow
+    assert 0.85 * TAU_S < k < TAU_S
+    assert e < fp.width_error_mm(ref, TAU_S, None, {}, TAU_S) < 0.2 * fp.width_error_mm(ref, TAU_S, None, {}, 0.0)
