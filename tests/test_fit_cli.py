@@ -279,3 +279,37 @@ def test_fit_says_when_the_printer_ignores_the_firmware_line_and_gates_every_pas
     assert len(ve) == 1 and "NOT TRUSTWORTHY" in ve[0] and "95 %" not in ve[0]
     assert len(kal) == 1 and "NOT TRUSTWORTHY" in kal[0] and "linear_advance" not in kal[0]
     assert not any(x.startswith("pressure advance") and "95 %" in x for x in lines)
+
+
+def test_a_nonlinear_fits_firmware_line_is_the_width_optimal_k_not_tau(scan, capsys):
+    """With a saturating term the fitted tau is only the linear part of the advance: a
+    foreign Bowden print fitted as pa+kalico_recip read tau 0.036 s where the linear K that
+    printed best was 0.201 s, and `calib fit` printed the 0.036 as its firmware line. The
+    line is now the width match's K on the standard move mix (no smoothing), the number
+    `calib export --to marlin` writes."""
+    from fit.model import build_model
+    from fit.virtual import print_virtual
+    from patterns.manifest import Manifest
+
+    d, _, mp, _ = scan
+    man = Manifest.load(mp)
+    truth = {"pa.tau_s": 0.01, "kalico_recip.off_mm": 0.3, "kalico_recip.v_lin_mm_s": 1.0}
+    t = print_virtual(man, build_model("pa+kalico_recip", man.printer), truth).table
+    t.width_sd_mm[:] = 0.005
+    t.width_mm = t.width_mm + 0.005 * np.random.default_rng(5).standard_normal(len(t))
+    w = t.save(d / "recip.csv")
+    out = d / "recip.json"
+    capsys.readouterr()
+    rc = main(["fit", str(w), "--manifest", str(mp), "--model", "pa+kalico_recip", "--quiet", "-o", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    tau = doc["derived"]["pressure_advance_s"]["median"]
+    k = doc["derived"]["firmware_match"]["k_s"]["median"]
+    assert tau == pytest.approx(doc["params"]["pa.tau_s"]["median"], rel=0.01)      # the time constant stays
+    assert k > 3 * tau
+    assert doc["derived"]["firmware"]["marlin"] == f"M900 K{k:.4f}"
+    if doc["trust"]["trustworthy"]:
+        assert "the fitted time constant" in text and f"M900 K{k:.4f}" in text
+    assert main(["export", str(out), "--to", "marlin", "--force"]) == 0
+    assert capsys.readouterr().out.strip() == f"M900 K{k:.4f}"

@@ -231,8 +231,7 @@ def width_match(doc, target: str, on: str | None = None, n_draws: int = MATCH_DR
         man = fm.reference_from_gcode(text, prof, name=on)
         ref = fm.prepare_reference(man, path.name)
     else:
-        ref = fm.prepare_reference(fm.standard_reference(prof),
-                                   "the standard move mix (4 L-shaped lines, 25-150 mm/s)")
+        ref = fm.prepare_reference(fm.standard_reference(prof), fm.STANDARD_MIX)
     st, free, table_st = match_smoothing(doc, target)
     bar = progress(total=0 if phys.linear else len(phys.theta), desc="width match", unit="draw",
                    disable=phys.linear)

@@ -179,6 +179,7 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         return derived_values(res.param_names, samples, res.profile, advance_fn=adv[0] if adv else None,
                               v_max_mm_s=adv[1] if adv else None)
     res.derived = derive(res.samples)
+    firmware_k(res)
     from fit.firmware_match import tested_flow_range
 
     # `calib export` warns when a reference print goes beyond the flows the test covered
@@ -215,6 +216,27 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     res.diagnostics["missing_stations"] = missing_info(problem)
     res.trust = assess(res.to_json(), chi2_max=chi2_max).to_json()
     return res, problem
+
+
+def firmware_k(res) -> None:
+    """Where the fitted dynamics are more than linear PA, the firmware lines of
+    ``res.derived`` take the linear K that prints the standard move mix best
+    (fit.firmware_match.fit_linear_k, Marlin/RRF: no smoothing), recorded as
+    ``derived["firmware_match"]``; ``pressure_advance_s`` stays the fitted time constant.
+    A K at the search's limit gives no firmware line."""
+    from fit.derived import firmware_commands
+    from fit.firmware_match import fit_linear_k
+
+    doc = res.to_json()
+    m = fit_linear_k(doc)
+    if m is None:
+        return
+    res.derived["firmware_match"] = {"k_s": m.k_s, "reference": m.reference, "smooth_time_s": 0.0,
+                                     "rms_um": m.rms_opt_um, "n_at_limit": m.n_at_limit}
+    if m.n_at_limit:
+        res.derived.pop("firmware", None)
+    else:
+        res.derived["firmware"] = firmware_commands(m.k_s["median"])
 
 
 def missing_info(problem) -> dict:
@@ -359,14 +381,28 @@ def summary_text(res) -> str:
     # the verdict on its own line: an interval printed beside an untrustworthy value reads
     # as a number to use (a Bowden user whose firmware ignores PA is sent to VE)
     trusted = res.trust.get("trustworthy", True)
-    if fw and not trusted:
+    fm_k = res.derived.get("firmware_match")
+    if (fw or fm_k) and not trusted:
         pa = res.derived["pressure_advance_s"]
         lines.append(f"pressure advance {pa['median']:.4f} s: NOT TRUSTWORTHY, no firmware line "
                      "(see the fit quality below)")
+    elif fw and fm_k:
+        pa, k = res.derived["pressure_advance_s"], fm_k["k_s"]
+        lines.append(f"pressure advance (the fitted time constant) {pa['median']:.4f} s (95 % {pa['ci95'][0]:.4f}-"
+                     f"{pa['ci95'][1]:.4f}); the dynamics are more than linear PA, so the linear K that prints "
+                     f"{fm_k['reference']} best (no smoothing):")
+        lines.append(f"  {k['median']:.4f} s (95 % {k['ci95'][0]:.4f}-{k['ci95'][1]:.4f}):"
+                     f"  {fw['klipper']}  |  {fw['marlin']}  |  {fw['rrf']}  (`calib export --to TARGET` "
+                     f"matches each firmware's smoothing)")
     elif fw:
         pa = res.derived["pressure_advance_s"]
         lines.append(f"pressure advance {pa['median']:.4f} s (95 % {pa['ci95'][0]:.4f}-{pa['ci95'][1]:.4f}):"
                      f"  {fw['klipper']}  |  {fw['marlin']}  |  {fw['rrf']}")
+    elif fm_k:
+        lines.append(f"pressure advance {res.derived['pressure_advance_s']['median']:.4f} s: no firmware line, "
+                     f"the linear K that prints {fm_k['reference']} best lies at the search's limit "
+                     "(see `calib export`)")
+    if fw and trusted:
         prof = res.profile or {}
         if prof.get("firmware_pressure_advance", True) is False:
             # the Adventurer 3: its owner's tests found no effect of M900 even at K=200
