@@ -23,6 +23,7 @@ footprint, ``optimal_advance``).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import tempfile
@@ -57,7 +58,8 @@ def one(hidden: str, seed: int) -> dict:
         w, m, f = (os.path.join(d, n) for n in ("probe.csv", "probe.manifest.json", "fit.json"))
         c.table.save(w)
         c.manifest.save(m)
-        res, _ = run_fit([(w, m)], "auto", seed=seed, progress=False)
+        with contextlib.redirect_stdout(sys.stderr):        # the chain `calib fit` prints: a log line
+            res, _ = run_fit([(w, m)], "auto", seed=seed, progress=False)
         res.save(f)
         doc = load_fit_json(f)
     t_fit = time.perf_counter() - t0
