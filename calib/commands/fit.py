@@ -176,10 +176,13 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     adv = problem_advance(problem)      # Kalico match for models with a nonlinear term
 
     def derive(samples):
-        return derived_values(res.param_names, samples, res.profile, advance_fn=adv[0] if adv else None,
-                              v_max_mm_s=adv[1] if adv else None)
+        d = derived_values(res.param_names, samples, res.profile, advance_fn=adv[0] if adv else None,
+                           v_max_mm_s=adv[1] if adv else None)
+        # the firmware line of dynamics beyond linear PA, from the same draws: the offset
+        # and noise envelopes below widen its interval as they widen tau's
+        return firmware_k(d, {"model": model_spec, "param_names": res.param_names, "samples": samples,
+                              "profile": res.profile})
     res.derived = derive(res.samples)
-    firmware_k(res)
     from fit.firmware_match import tested_flow_range
 
     # `calib export` warns when a reference print goes beyond the flows the test covered
@@ -218,25 +221,24 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     return res, problem
 
 
-def firmware_k(res) -> None:
-    """Where the fitted dynamics are more than linear PA, the firmware lines of
-    ``res.derived`` take the linear K that prints the standard move mix best
-    (fit.firmware_match.fit_linear_k, Marlin/RRF: no smoothing), recorded as
-    ``derived["firmware_match"]``; ``pressure_advance_s`` stays the fitted time constant.
-    A K at the search's limit gives no firmware line."""
+def firmware_k(derived: dict, doc: dict) -> dict:
+    """``derived`` (fit.derived.derived_values) where the fitted dynamics of ``doc`` (model,
+    param_names, samples, profile) are more than linear PA: the firmware lines take the
+    linear K that prints the standard move mix best (fit.firmware_match.fit_linear_k,
+    Marlin/RRF: no smoothing), recorded as ``firmware_match``; ``pressure_advance_s`` stays
+    the fitted time constant. A K at the search's limit gives no firmware line."""
     from fit.derived import firmware_commands
     from fit.firmware_match import fit_linear_k
 
-    doc = res.to_json()
     m = fit_linear_k(doc)
     if m is None:
-        return
-    res.derived["firmware_match"] = {"k_s": m.k_s, "reference": m.reference, "smooth_time_s": 0.0,
-                                     "rms_um": m.rms_opt_um, "n_at_limit": m.n_at_limit}
-    if m.n_at_limit:
-        res.derived.pop("firmware", None)
-    else:
-        res.derived["firmware"] = firmware_commands(m.k_s["median"])
+        return derived
+    out = {k: v for k, v in derived.items() if k != "firmware"}
+    out["firmware_match"] = {"k_s": m.k_s, "reference": m.reference, "smooth_time_s": 0.0,
+                             "rms_um": m.rms_opt_um, "n_at_limit": m.n_at_limit}
+    if not m.n_at_limit:
+        out["firmware"] = firmware_commands(m.k_s["median"])
+    return out
 
 
 def missing_info(problem) -> dict:
