@@ -581,29 +581,6 @@ def optimal_linear(phys: Physics, ref: Reference, *, smooth_time_s: float = 0.0,
 STANDARD_MIX = "the standard move mix (4 L-shaped lines, 25-150 mm/s)"
 
 
-def fit_linear_k(doc, n_draws: int = 64) -> MatchResult | None:
-    """The linear K that prints the standard move mix best with the fit's dynamics, no
-    firmware smoothing (Marlin LA, RRF): what `calib fit` gives as its firmware line when
-    the dynamics are more than linear PA. None when they are linear PA (tau then cancels
-    them exactly) or cannot be simulated here (a fit.json whose printer profile lacks the
-    limits the planner needs: the value is then tau, as `calib export` says).
-
-    Why not tau: with a nonlinear term tau is only the linear part of the advance. A
-    foreign Bowden print fitted as pa+kalico_recip read tau 0.036 s [0.028, 0.046] while the
-    linear K that printed the move mix best on that printer was 0.201 s (bench_export_foreign);
-    `calib fit` had printed the 0.036 as "SET_PRESSURE_ADVANCE ADVANCE=0.0360", trusted."""
-    from patterns.profile import profile_from_dict
-
-    try:
-        phys = physics_from_fit(doc, n_draws=n_draws)
-        if phys.linear:
-            return None
-        prof = profile_from_dict(dict(doc.get("profile") or {}), source="fit.json profile")
-    except UserError:
-        return None
-    return match_firmware(doc, prepare_reference(standard_reference(prof), STANDARD_MIX),
-                          smooth_time_s=0.0, physics=phys)
-
 def summarize_draws(x) -> dict:
     """median and 95 % interval (2.5-97.5 % quantiles) of per-draw values."""
     x = np.asarray(x, float)
@@ -765,3 +742,27 @@ def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_fr
                        smooth_free=bool(optimised and smooth_free), rms_opt_um=rms_opt, rows=rows,
                        settings=settings, n_draws=n, flow_reference_mm3_s=ref.flow_mm3_s,
                        flow_tested_mm3_s=tested_flow_of(doc), notes=notes, n_at_limit=n_lim)
+
+
+def fit_linear_k(doc, n_draws: int = 64) -> MatchResult | None:
+    """The linear K that prints the standard move mix best with the fit's dynamics, no
+    firmware smoothing (Marlin LA, RRF): what `calib fit` gives as its firmware line when
+    the dynamics are more than linear PA. None when they are linear PA (tau then cancels
+    them exactly) or cannot be simulated here (a fit.json whose printer profile lacks the
+    limits the planner needs: the value is then tau, as `calib export` says).
+
+    Why not tau: with a nonlinear term tau is only the linear part of the advance. A
+    foreign Bowden print fitted as pa+kalico_recip read tau 0.036 s [0.028, 0.046] while the
+    linear K that printed the move mix best on that printer was 0.201 s (bench_export_foreign);
+    `calib fit` had printed the 0.036 as "SET_PRESSURE_ADVANCE ADVANCE=0.0360", trusted."""
+    from patterns.profile import profile_from_dict
+
+    try:
+        phys = physics_from_fit(doc, n_draws=n_draws)
+        if phys.linear:
+            return None
+        prof = profile_from_dict(dict(doc.get("profile") or {}), source="fit.json profile")
+    except UserError:
+        return None
+    return match_firmware(doc, prepare_reference(standard_reference(prof), STANDARD_MIX),
+                          smooth_time_s=0.0, physics=phys)
