@@ -748,8 +748,8 @@ def fit_linear_k(doc, n_draws: int = 64) -> MatchResult | None:
     """The linear K that prints the standard move mix best with the fit's dynamics, no
     firmware smoothing (Marlin LA, RRF): what `calib fit` gives as its firmware line when
     the dynamics are more than linear PA. None when they are linear PA (tau then cancels
-    them exactly) or cannot be simulated here (a fit.json whose printer profile lacks the
-    limits the planner needs: the value is then tau, as `calib export` says).
+    them exactly) or hold nothing to simulate; UserError when they are more than linear PA
+    and the move mix cannot be planned (a printer profile without the planner's limits).
 
     Why not tau: with a nonlinear term tau is only the linear part of the advance. A
     foreign Bowden print fitted as pa+kalico_recip read tau 0.036 s [0.028, 0.046] while the
@@ -759,10 +759,10 @@ def fit_linear_k(doc, n_draws: int = 64) -> MatchResult | None:
 
     try:
         phys = physics_from_fit(doc, n_draws=n_draws)
-        if phys.linear:
-            return None
-        prof = profile_from_dict(dict(doc.get("profile") or {}), source="fit.json profile")
     except UserError:
         return None
+    if phys.linear:
+        return None
+    prof = profile_from_dict(dict(doc.get("profile") or {}), source="fit.json profile")
     return match_firmware(doc, prepare_reference(standard_reference(prof), STANDARD_MIX),
                           smooth_time_s=0.0, physics=phys)

@@ -313,3 +313,24 @@ def test_a_nonlinear_fits_firmware_line_is_the_width_optimal_k_not_tau(scan, cap
         assert "the fitted time constant" in text and f"M900 K{k:.4f}" in text
     assert main(["export", str(out), "--to", "marlin", "--force"]) == 0
     assert capsys.readouterr().out.strip() == f"M900 K{k:.4f}"
+
+
+def test_no_firmware_line_where_nonlinear_dynamics_cannot_be_planned():
+    """A printer dict without the planner's limits (a hand-made or old manifest) cannot plan
+    the move mix the linear K comes from; tau is then only part of the advance, so no
+    firmware line at all (a rendered probe print's fit printed "M900 K0.0471" for a printer
+    whose best K is 0.201 s). A linear `pa` fit keeps tau, which cancels it exactly."""
+    from calib.commands.fit import firmware_k
+    from fit.derived import derived_values
+
+    names = ["pa.tau_s", "kalico_recip.off_mm", "kalico_recip.v_lin_mm_s"]
+    S = np.tile([0.047, 0.5, 2.0], (40, 1)) * (1 + 0.01 * np.random.default_rng(0).standard_normal((40, 3)))
+    partial = {"name": "probe", "filament_diameter_mm": 1.75, "nozzle_diameter_mm": 0.4}
+    d = derived_values(names, S, partial)
+    assert d["firmware"]["marlin"].startswith("M900 K0.04")           # tau, before
+    out = firmware_k(d, {"model": "pa+kalico_recip", "param_names": names, "samples": S, "profile": partial})
+    assert "firmware" not in out and "missing key" in out["firmware_match"]["unavailable"]
+    assert out["pressure_advance_s"] == d["pressure_advance_s"]       # the time constant stays
+    lin = derived_values(names[:1], S[:, :1], partial)
+    assert firmware_k(lin, {"model": "pa", "param_names": names[:1], "samples": S[:, :1],
+                            "profile": partial}) == lin

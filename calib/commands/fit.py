@@ -226,14 +226,20 @@ def firmware_k(derived: dict, doc: dict) -> dict:
     param_names, samples, profile) are more than linear PA: the firmware lines take the
     linear K that prints the standard move mix best (fit.firmware_match.fit_linear_k,
     Marlin/RRF: no smoothing), recorded as ``firmware_match``; ``pressure_advance_s`` stays
-    the fitted time constant. A K at the search's limit gives no firmware line."""
+    the fitted time constant. A K at the search's limit gives no firmware line, nor do such
+    dynamics where the move mix cannot be planned: tau is then only part of the advance (a
+    probe print's partial printer dict gave "M900 K0.0471" for a best K of 0.201 s)."""
     from fit.derived import firmware_commands
     from fit.firmware_match import fit_linear_k
 
-    m = fit_linear_k(doc)
+    out = {k: v for k, v in derived.items() if k != "firmware"}
+    try:
+        m = fit_linear_k(doc)
+    except UserError as exc:
+        out["firmware_match"] = {"unavailable": str(exc)}
+        return out
     if m is None:
         return derived
-    out = {k: v for k, v in derived.items() if k != "firmware"}
     out["firmware_match"] = {"k_s": m.k_s, "reference": m.reference, "smooth_time_s": 0.0,
                              "rms_um": m.rms_opt_um, "n_at_limit": m.n_at_limit}
     if not m.n_at_limit:
@@ -400,6 +406,10 @@ def summary_text(res) -> str:
         pa = res.derived["pressure_advance_s"]
         lines.append(f"pressure advance {pa['median']:.4f} s (95 % {pa['ci95'][0]:.4f}-{pa['ci95'][1]:.4f}):"
                      f"  {fw['klipper']}  |  {fw['marlin']}  |  {fw['rrf']}")
+    elif fm_k and "unavailable" in fm_k:
+        lines.append(f"pressure advance (the fitted time constant) {res.derived['pressure_advance_s']['median']:.4f} s: "
+                     "no firmware line: the dynamics are more than linear PA, so tau is only part of the "
+                     f"advance, and the move mix that gives the linear K cannot be planned ({fm_k['unavailable']})")
     elif fm_k:
         lines.append(f"pressure advance {res.derived['pressure_advance_s']['median']:.4f} s: no firmware line, "
                      f"the linear K that prints {fm_k['reference']} best lies at the search's limit "
