@@ -131,6 +131,30 @@ def test_an_optimum_at_the_search_limit_is_said_not_to_be_a_measurement(ref, tmp
     assert cfg.read_text().startswith("M900 K5.0") or cfg.read_text().startswith("M900 K4.9")
 
 
+def test_nonlinear_dynamics_that_cannot_be_planned_are_not_exported_as_tau(tmp_path, capsys):
+    """A printer dict without the planner's limits (a hand-made or old manifest): the move
+    mix cannot be planned, and with more than linear PA tau is only part of the advance (a
+    probe print's fit would have written tau 0.047 s for a printer whose best K is 0.201 s).
+    Refused with one line; --force writes tau with a note; a linear fit keeps tau as before."""
+    partial = {"name": "probe", "filament_diameter_mm": 1.75, "nozzle_diameter_mm": 0.4}
+    doc = fit_doc({"pa.tau_s": 0.047, "kalico_recip.off_mm": 0.5, "kalico_recip.v_lin_mm_s": 2.0},
+                  "pa+kalico_recip", n=8)
+    fit = write(tmp_path, {**doc, "profile": partial})
+    cfg = tmp_path / "start.gcode"
+    cfg.write_text("M900 K0.05\n")
+    capsys.readouterr()
+    assert main(["export", fit, "--to", "marlin", "--profile", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "more than linear PA" in err and "--force" in err and "Traceback" not in err
+    assert err.count("\n") == 1 and cfg.read_text() == "M900 K0.05\n"
+    assert main(["export", fit, "--to", "marlin", "--profile", str(cfg), "--force"]) == 0
+    assert "the value is tau" in capsys.readouterr().err
+    assert cfg.read_text().startswith("M900 K0.04")
+    lin = fit_doc({"pa.tau_s": 0.047}, "pa", n=8)
+    assert main(["export", write(tmp_path, {**lin, "profile": partial}, "lin.json"), "--to", "marlin"]) == 0
+    assert capsys.readouterr().out.startswith("M900 K0.04")
+
+
 def test_export_prints_the_optimal_k_with_interval_and_the_table(tmp_path, capsys):
     derived = {"tested_flow_mm3_s": {"lo": 0.5, "hi": 20.0},
                "kalico_tanh": {"pressure_advance_s": {"median": 0.02}, "offset_mm": {"median": 0.05},

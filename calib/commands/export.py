@@ -204,20 +204,30 @@ def match_smoothing(doc, target: str) -> tuple[float, bool, float]:
     return 0.0, False, fw_st
 
 
-def width_match(doc, target: str, on: str | None = None, n_draws: int = MATCH_DRAWS):
+def width_match(doc, target: str, on: str | None = None, n_draws: int = MATCH_DRAWS,
+                force: bool = False):
     """The width match (fit.firmware_match.match_firmware) of ``target`` on the standard
     move mix or the G-code file ``on``; None (with a note on stderr) when the fit cannot
-    be simulated and no ``--on`` was asked for; UserError for a bad ``--on`` file."""
+    be simulated and no ``--on`` was asked for; UserError for a bad ``--on`` file, and
+    (unless ``force``) for dynamics more than linear PA whose move mix cannot be planned:
+    tau is then only the linear part of the advance (a probe print's partial printer dict
+    made `calib export` write tau 0.047 s where the printer's best K was 0.201 s)."""
     from calib.progress import progress
     from fit import firmware_match as fm
     from patterns.profile import profile_from_dict
 
+    phys = None
     try:
         phys = fm.physics_from_fit(doc, n_draws=n_draws)
         prof = profile_from_dict(dict(doc.get("profile") or {}), source="fit.json profile")
     except UserError as exc:
         if on:
             raise UserError(f"--on {on}: cannot simulate this fit: {exc}") from None
+        if phys is not None and not phys.linear and not force:
+            raise UserError(f"not exporting: the fitted dynamics ({phys.spec}) are more than linear "
+                            f"PA and the width match cannot plan the move mix ({exc}), so tau is only "
+                            "the linear part of the advance; fit a manifest from `calib pattern` or "
+                            "`calib plan` with a whole printer profile (--force exports tau anyway)")
         print(f"calib export: note: no width-error check ({exc}); the value is tau", file=sys.stderr)
         return None
     if on:
@@ -571,7 +581,7 @@ def run(args) -> int:
     if args.to in MATCH_TARGETS:
         # the spool field holds the value Klipper macros apply: Klipper's width match
         as_target = "klipper" if spool else args.to
-        m = width_match(doc, as_target, args.on)
+        m = width_match(doc, as_target, args.on, force=args.force)
         if m is not None:
             report_match(m, as_target)
             if m.n_at_limit and not args.force:
