@@ -57,6 +57,7 @@ from scipy.optimize import minimize, minimize_scalar
 
 from calib.errors import UserError
 from fit.effects import Effect, _pa_velocity, triangular_smooth
+from fit.noise_envelope import _hull
 from fit.params import Param
 
 #: head speeds (mm/s) of the standard reference print's lines
@@ -89,6 +90,11 @@ EXTRAPOLATION_MARGIN = 1.05
 NOT_DYNAMICS = frozenset({"scan_bias", "heading", "bed_tilt", "flow_gain", "firmware_pa"})
 #: adaptive table rows the compensation effect can hold
 N_TABLE = 16
+#: Draws of each envelope (fit.json ``envelope_samples``) the K interval is taken over.
+ENVELOPE_MATCH_DRAWS = 32
+#: What each envelope holds, for the note beside the interval.
+ENVELOPE_WORDS = {"offset": "the width calibration's offset doubt",
+                  "noise": "the short-wobble noise model's fit"}
 
 MODE_LINEAR, MODE_TANH, MODE_RECIPR, MODE_TABLE = 0.0, 1.0, 2.0, 3.0
 
@@ -581,6 +587,23 @@ def optimal_linear(phys: Physics, ref: Reference, *, smooth_time_s: float = 0.0,
 STANDARD_MIX = "the standard move mix (4 L-shaped lines, 25-150 mm/s)"
 
 
+def envelope_sets(doc) -> list:
+    """[(name, draws)] of fit.json's ``envelope_samples`` whose rows are laid out as its
+    ``samples`` (older fits have none)."""
+    k = len(doc.get("param_names") or [])
+    out = []
+    for name, E in (doc.get("envelope_samples") or {}).items():
+        E = np.asarray(E, float)
+        if E.ndim == 2 and E.shape[0] > 0 and E.shape[1] == k:
+            out.append((name, E))
+    return out
+
+
+def envelope_draw_count(doc) -> int:
+    """How many envelope draws :func:`match_firmware` simulates besides the posterior's."""
+    return sum(min(ENVELOPE_MATCH_DRAWS, len(E)) for _, E in envelope_sets(doc))
+
+
 def summarize_draws(x) -> dict:
     """median and 95 % interval (2.5-97.5 % quantiles) of per-draw values."""
     x = np.asarray(x, float)
@@ -618,6 +641,8 @@ class MatchResult:
     notes: list = field(default_factory=list)
     #: draws whose width-optimal K lies at the search's limit K_LIMIT_S (not a measurement)
     n_at_limit: int = 0
+    #: draws of the envelopes (fit.json ``envelope_samples``) the intervals also hold
+    n_envelope_draws: int = 0
 
     @property
     def extrapolates(self) -> bool:
@@ -670,14 +695,18 @@ def tested_flow_of(doc) -> tuple | None:
 def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_free: bool = False,
                    kalico_smooth_time_s: float = KLIPPER_SMOOTH_TIME_S,
                    table_smooth_time_s: float = 0.0, n_draws: int = 64, seed: int = 0,
-                   physics: Physics | None = None, on_draw=None) -> MatchResult:
+                   physics: Physics | None = None, on_draw=None,
+                   envelopes: bool = True) -> MatchResult:
     """Simulate ``ref`` with the fit's dynamics (``n_draws`` posterior draws) under: no PA;
     linear PA at tau; the width-optimal linear PA (per draw, exported as the median with a
     95 % interval; Klipper: with the smooth time free when ``smooth_free``); the fit's
     Kalico tanh / recipr match and Orca adaptive table (fit.json ``derived``, when the fit
     has a nonlinear term). For dynamics that are linear PA alone (pa, pa_ve) the optimum
     is tau (exact cancellation, module docstring) and is not searched: the export keeps
-    tau and the firmware's smooth time.
+    tau and the firmware's smooth time. With ``envelopes``, the 95 % intervals of K and
+    the smooth time are hulled with those over each envelope's draws in fit.json
+    (``envelope_samples``: the width offset's doubt, the short-wobble noise model), the
+    median staying the posterior's; their draws at the search's limit count in n_at_limit.
     """
     phys = physics or physics_from_fit(doc, n_draws=n_draws, seed=seed)
     n = len(phys.theta)
@@ -694,12 +723,31 @@ def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_fr
                              on_draw=on_draw)
         optimised = True
     n_lim = int(np.sum(opt["k_s"] >= (1.0 - EDGE_FRACTION) * K_LIMIT_S)) if optimised else 0
+    n_env = 0
+    k_sum, st_sum = summarize_draws(opt["k_s"]), summarize_draws(opt["smooth_time_s"])
+    if envelopes:
+        # The posterior's interval alone holds neither doubt `calib fit` widens its own
+        # intervals by: the demo's export read K 0.8862-0.8881 s where the fit's firmware K
+        # (the same match, no smoothing) read 0.8592-0.8691 with them.
+        for name, E in envelope_sets(doc):
+            ph = physics_from_fit({**doc, "samples": E}, n_draws=ENVELOPE_MATCH_DRAWS, seed=seed)
+            if phys.linear and ph.tau_s is not None:
+                ks, sts = np.asarray(ph.tau_s, float), np.full(len(ph.theta), st_fixed)
+            else:
+                o = optimal_linear(ph, ref, smooth_time_s=st_fixed, free_smooth=smooth_free,
+                                   on_draw=on_draw)
+                ks, sts = o["k_s"], o["smooth_time_s"]
+                n_lim += int(np.sum(ks >= (1.0 - EDGE_FRACTION) * K_LIMIT_S))
+            k_sum["ci95"] = _hull(k_sum["ci95"], summarize_draws(ks)["ci95"])
+            st_sum["ci95"] = _hull(st_sum["ci95"], summarize_draws(sts)["ci95"])
+            n_env += len(ks)
+            notes.append(f"the 95 % interval of K holds {ENVELOPE_WORDS.get(name, name)} "
+                         f"({len(ks)} draws), as `calib fit`'s intervals do")
     if n_lim:
-        notes.append(f"the width-optimal K of {n_lim} of {n} draws lies at the search's limit "
+        notes.append(f"the width-optimal K of {n_lim} of {n + n_env} draws lies at the search's limit "
                      f"({K_LIMIT_S:g} s): the fitted physics wants more advance than any printer "
                      f"takes, so the value is not a measurement; do not paste it, check the fit "
                      f"with `calib diagnose`")
-    k_sum, st_sum = summarize_draws(opt["k_s"]), summarize_draws(opt["smooth_time_s"])
     k_exp = k_sum["median"]
     st_exp = st_sum["median"] if optimised and smooth_free else st_fixed
     settings = [Setting("none")]
@@ -741,7 +789,8 @@ def match_firmware(doc, ref: Reference, *, smooth_time_s: float = 0.0, smooth_fr
                        {"median": st_fixed, "ci95": [st_fixed, st_fixed]},
                        smooth_free=bool(optimised and smooth_free), rms_opt_um=rms_opt, rows=rows,
                        settings=settings, n_draws=n, flow_reference_mm3_s=ref.flow_mm3_s,
-                       flow_tested_mm3_s=tested_flow_of(doc), notes=notes, n_at_limit=n_lim)
+                       flow_tested_mm3_s=tested_flow_of(doc), notes=notes, n_at_limit=n_lim,
+                       n_envelope_draws=n_env)
 
 
 def fit_linear_k(doc, n_draws: int = 64) -> MatchResult | None:

@@ -51,6 +51,7 @@ from dataclasses import replace
 import numpy as np
 
 from fit.likelihood import is_noise
+from fit.result import envelope_rows
 
 #: BIC by which the short wobble's MAP must beat the default's before it widens anything
 #: (the usual "very strong" evidence; the measured scans were 107-532 below).
@@ -139,6 +140,7 @@ def widen(problem, result, *, seed: int = 0, derive=None) -> dict:
         result.params[n] = replace(p, **{k: tuple(v) for k, v in new.items()})
     if derive is not None and result.derived:
         result.derived = union_derived(result.derived, derive(draws))
+    result.envelope_samples["noise"] = envelope_rows(draws, seed)
     return info
 
 

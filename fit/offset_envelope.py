@@ -70,6 +70,7 @@ from dataclasses import replace
 import numpy as np
 
 from fit.likelihood import is_noise
+from fit.result import envelope_rows
 from fit.noise_envelope import _LEVELS, _hull, union_derived
 
 #: the parameter named for the widths' common offset (a model with it carries the doubt)
@@ -181,6 +182,7 @@ def widen_offset(problem, result, states, *, seed: int = 0, derive=None) -> dict
         result.params[n] = replace(p, **{k: tuple(v) for k, v in new.items()})
     if derive is not None and result.derived:
         result.derived = union_derived(result.derived, derive(draws))
+    result.envelope_samples["offset"] = envelope_rows(draws, seed)
     result.diagnostics["offset_envelope"] = info
     return info
 

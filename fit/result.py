@@ -27,6 +27,8 @@ import numpy as np
 from calib.fileio import read_json_doc, write_json
 
 SCHEMA = "calib.fit/1"
+#: Rows of each envelope's draws fit.json keeps (FitResult.envelope_samples).
+ENVELOPE_KEEP = 256
 #: Largest bead wobble (sd, fraction of the width) that chi2_nu_bead accepts as the bead's own.
 WOBBLE_REL_MAX = 0.02
 
@@ -130,6 +132,10 @@ class FitResult:
     priors: dict = field(default_factory=dict)
     seed: int | None = None
     trust: dict = field(default_factory=dict)     # fit.trust.Verdict.to_json()
+    #: draws (rows as ``samples``) of the envelopes that widened the intervals (fit/
+    #: offset_envelope.py "offset", fit/noise_envelope.py "noise"): `calib export`'s width
+    #: match takes its K interval over them too, as `calib fit`'s intervals do
+    envelope_samples: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -156,6 +162,7 @@ class FitResult:
             "derived": self.derived, "profile": self.profile, "priors": self.priors,
             "seed": self.seed, "trust": self.trust,
             "samples": np.round(self.samples, 7).tolist(),
+            "envelope_samples": {k: np.round(v, 7).tolist() for k, v in self.envelope_samples.items()},
             "predictions": self.predictions,
         }
 
@@ -163,8 +170,19 @@ class FitResult:
         return write_json(path, self.to_json())
 
 
+def envelope_rows(draws, seed: int = 0) -> np.ndarray:
+    """Up to ENVELOPE_KEEP rows of an envelope's ``draws`` (random, fixed seed), in order:
+    what FitResult.envelope_samples keeps."""
+    draws = np.asarray(draws, dtype=float)
+    rows = np.random.default_rng(seed).choice(len(draws), min(ENVELOPE_KEEP, len(draws)), replace=False)
+    return draws[np.sort(rows)]
+
+
 def load_fit_json(path) -> dict:
     """Read ``fit.json`` as a dict (checked schema); ``samples`` as an array."""
     doc = read_json_doc(path, "calib.fit/", "fit", "run `calib fit` first")
     doc["samples"] = np.asarray(doc.get("samples", []), dtype=float)
+    env = doc.get("envelope_samples")
+    doc["envelope_samples"] = ({k: np.asarray(v, dtype=float) for k, v in env.items()}
+                               if isinstance(env, dict) else {})
     return doc

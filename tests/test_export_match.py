@@ -155,6 +155,36 @@ def test_nonlinear_dynamics_that_cannot_be_planned_are_not_exported_as_tau(tmp_p
     assert capsys.readouterr().out.startswith("M900 K0.04")
 
 
+def test_the_k_interval_holds_the_fits_envelopes(ref, tmp_path, capsys):
+    """fit.json's envelope draws (the width offset's doubt, the short-wobble fit) widen
+    the exported K's 95 % interval as they widen `calib fit`'s: the median stays the
+    posterior's; the interval reaches the envelope's K. Linear PA: the envelope's tau;
+    nonlinear: the width-optimal K of the envelope's draws."""
+    doc = fit_doc({"pa.tau_s": TAU}, "pa", n=40, rel_sd=0.002)
+    doc["envelope_samples"] = {"noise": np.asarray(doc["samples"]) * 1.10}
+    fit = write(tmp_path, {**doc, "envelope_samples": {"noise": doc["envelope_samples"]["noise"].tolist()}})
+    capsys.readouterr()
+    assert main(["export", fit, "--to", "marlin"]) == 0
+    cap = capsys.readouterr()
+    k = float(cap.out.split("K")[1])
+    assert k == pytest.approx(TAU, rel=0.005)                        # the posterior's median
+    hi = float(cap.err.split("(95 % ")[1].split("-")[1].split(")")[0])
+    assert hi == pytest.approx(1.10 * TAU, rel=0.01)
+    assert "short-wobble noise model" in cap.err and "(and 32 of the fit's envelopes)" in cap.err
+    truth = {"pa.tau_s": 0.02, "nonlinear.n": 0.7}
+    nl = fit_doc(truth, "pa+nonlinear", n=4, rel_sd=0.0)
+    post = fm.match_firmware(nl, ref, smooth_time_s=0.0, n_draws=4)
+    nl["envelope_samples"] = {"offset": fit_doc({"pa.tau_s": 0.025, "nonlinear.n": 0.7}, "pa+nonlinear",
+                                                n=4, rel_sd=0.0)["samples"]}
+    both = fm.match_firmware(nl, ref, smooth_time_s=0.0, n_draws=4)
+    assert both.k_s["median"] == post.k_s["median"] and both.n_envelope_draws == 4
+    other = fm.match_firmware({**nl, "samples": nl["envelope_samples"]["offset"]}, ref, smooth_time_s=0.0,
+                              n_draws=4, envelopes=False).k_s["median"]
+    assert abs(other - post.k_s["median"]) > 0.002                 # the envelope's K differs ...
+    lo, hi = both.k_s["ci95"]
+    assert lo <= min(other, post.k_s["median"]) + 1e-9 and hi >= max(other, post.k_s["median"]) - 1e-9
+
+
 def test_export_prints_the_optimal_k_with_interval_and_the_table(tmp_path, capsys):
     derived = {"tested_flow_mm3_s": {"lo": 0.5, "hi": 20.0},
                "kalico_tanh": {"pressure_advance_s": {"median": 0.02}, "offset_mm": {"median": 0.05},

@@ -90,6 +90,12 @@ def test_short_wobble_widens_every_interval_to_the_hull(vprint, tmp_path, capsys
     lo, hi = doc["derived"]["pressure_advance_s"]["ci95"]
     s_lo, s_hi = env["widened"]["pa.tau_s"]["ci95_short"]
     assert lo <= s_lo * 1.001 and hi >= s_hi * 0.999
+    # fit.json keeps the short fit's draws, for `calib export`'s interval of K
+    E = np.asarray(doc["envelope_samples"]["noise"])
+    assert E.shape == (256, len(doc["param_names"]))
+    t = E[:, doc["param_names"].index("pa.tau_s")]
+    assert s_lo * 0.95 < np.quantile(t, 0.025) and np.quantile(t, 0.975) < s_hi * 1.05
+    assert off["envelope_samples"].get("noise") is None
 
 
 def test_no_short_wobble_changes_nothing(vprint, tmp_path):
@@ -98,6 +104,7 @@ def test_no_short_wobble_changes_nothing(vprint, tmp_path):
     doc = _fit(vprint, tmp_path, LONG)
     env = doc["diagnostics"]["noise_envelope"]
     assert not env["applied"] and env["widened"] == {}
+    assert "noise" not in doc["envelope_samples"]
     off = _fit(vprint, tmp_path, LONG, ("--no-noise-envelope",))
     assert doc["params"] == off["params"]
     assert doc["derived"]["pressure_advance_s"] == off["derived"]["pressure_advance_s"]

@@ -116,7 +116,7 @@ def test_the_interval_carries_the_calibrations_offset_doubt():
     ps = ParamSummary(name="flow.w_mm", median=float(np.median(draws)), mean=float(draws.mean()), sd=s_post,
                       ci68=tuple(q[0:2]), ci90=tuple(q[2:4]), ci95=tuple(q[4:6]), map=float(m.theta[0]))
     res = SimpleNamespace(map=m, samples=draws, param_names=list(pb.param_names), params={"flow.w_mm": ps},
-                          derived={}, diagnostics={})
+                          derived={}, diagnostics={}, envelope_samples={})
     s_b = 0.002
     states = [{"scan": "scan", "calibration": {"applied": True, "offset_sd_mm": s_b}}]
     info = widen_offset(pb, res, states, seed=0)
@@ -125,6 +125,8 @@ def test_the_interval_carries_the_calibrations_offset_doubt():
     assert res.params["flow.w_mm"].median == ps.median
     assert info["widened"]["flow.w_mm"]["ci95_posterior"] == pytest.approx(list(ps.ci95))
     assert (hi - lo) / (ps.ci95[1] - ps.ci95[0]) > 2.0          # s_b = 2 um against s_post ~0.25 um
+    kept = res.envelope_samples["offset"][:, 0]                 # fit.json keeps the shifted draws
+    assert len(kept) == 256 and np.std(kept) == pytest.approx(math.hypot(s_post, s_b), rel=0.15)
     assert offset_doubts(pb, [{"scan": "scan", "calibration": {"applied": False}}]) == [None]
     assert widen_offset(pb, res, [{"scan": "scan", "calibration": None}]) is None
 

@@ -243,7 +243,8 @@ def width_match(doc, target: str, on: str | None = None, n_draws: int = MATCH_DR
     else:
         ref = fm.prepare_reference(fm.standard_reference(prof), fm.STANDARD_MIX)
     st, free, table_st = match_smoothing(doc, target)
-    bar = progress(total=0 if phys.linear else len(phys.theta), desc="width match", unit="draw",
+    bar = progress(total=0 if phys.linear else len(phys.theta) + fm.envelope_draw_count(doc),
+                   desc="width match", unit="draw",
                    disable=phys.linear)
     try:
         return fm.match_firmware(doc, ref, smooth_time_s=st, smooth_free=free,
@@ -273,7 +274,8 @@ def report_match(m, target: str) -> None:
 
     say = lambda t: print(f"calib export: {t}", file=sys.stderr)      # noqa: E731
     k, st = m.k_s, m.smooth_time_s
-    say(f"width check on {m.reference}, {m.n_draws} posterior draws:")
+    env = f" (and {m.n_envelope_draws} of the fit's envelopes)" if m.n_envelope_draws else ""
+    say(f"width check on {m.reference}, {m.n_draws} posterior draws{env}:")
     if m.optimised:
         line = (f"  linear PA that minimises the predicted width error: {k['median']:.4f} s "
                 f"(95 % {k['ci95'][0]:.4f}-{k['ci95'][1]:.4f})")
@@ -585,7 +587,7 @@ def run(args) -> int:
         if m is not None:
             report_match(m, as_target)
             if m.n_at_limit and not args.force:
-                raise UserError(f"the width-optimal K of {m.n_at_limit} of {m.n_draws} posterior draws "
+                raise UserError(f"the width-optimal K of {m.n_at_limit} of {m.n_draws + m.n_envelope_draws} draws "
                                 f"lies at the search's limit: nothing to paste (--force exports it anyway)")
             doc = with_match(doc, m)
     warn = firmware_warning(doc, args.to)
