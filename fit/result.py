@@ -180,9 +180,15 @@ def envelope_rows(draws, seed: int = 0) -> np.ndarray:
 
 def load_fit_json(path) -> dict:
     """Read ``fit.json`` as a dict (checked schema); ``samples`` as an array."""
+    from calib.errors import UserError
+
     doc = read_json_doc(path, "calib.fit/", "fit", "run `calib fit` first")
-    doc["samples"] = np.asarray(doc.get("samples", []), dtype=float)
     env = doc.get("envelope_samples")
-    doc["envelope_samples"] = ({k: np.asarray(v, dtype=float) for k, v in env.items()}
-                               if isinstance(env, dict) else {})
+    try:
+        doc["samples"] = np.asarray(doc.get("samples", []), dtype=float)
+        doc["envelope_samples"] = ({k: np.asarray(v, dtype=float) for k, v in env.items()}
+                                   if isinstance(env, dict) else {})
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{path}: its posterior draws are not a table of numbers ({exc}); "
+                        "run `calib fit` again") from None
     return doc

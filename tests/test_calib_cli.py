@@ -58,3 +58,21 @@ def test_report_with_a_12_mp_photo_stays_under_2_mb(tmp_path):
     html = build_report("t", scan=photo, overlay=photo)
     assert html.count("data:image/jpeg;base64,") == 2
     assert len(html.encode()) < 2_000_000
+
+
+@pytest.mark.parametrize("field, value", [
+    ("samples", [[0.04, "a"]]),
+    ("envelope_samples", {"noise": [[0.04], [0.05, 1.0]]}),
+])
+def test_a_fit_json_with_draws_that_are_not_numbers_is_one_line(tmp_path, capsys, field, value):
+    """A hand-edited or truncated fit.json: its draws are read as a table of numbers, and a
+    ragged or non-numeric one is refused in one line (it was a ValueError traceback)."""
+    import json
+
+    doc = {"schema": "calib.fit/1", "model": "pa", "param_names": ["pa.tau_s"],
+           "samples": [[0.04], [0.041]], field: value}
+    p = tmp_path / "fit.json"
+    p.write_text(json.dumps(doc))
+    assert main(["export", str(p), "--to", "marlin", "--force"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a table of numbers" in err[0]
