@@ -149,6 +149,6 @@ def read_json_doc(path, schema_prefix: str, kind: str, make_hint: str) -> dict:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise UserError(f"{path} is not a readable {kind} JSON file ({exc})") from None
     if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith(schema_prefix):
-        raise UserError(f"{path} is not a calib {kind} file (no 'schema: {schema_prefix}N' key); "
-                        f"{make_hint}")
+        want = f"'schema: {schema_prefix}N'" if schema_prefix.endswith("/") else "calib 'schema'"
+        raise UserError(f"{path} is not a calib {kind} file (no {want} key); {make_hint}")
     return doc

@@ -76,3 +76,21 @@ def test_a_fit_json_with_draws_that_are_not_numbers_is_one_line(tmp_path, capsys
     assert main(["export", str(p), "--to", "marlin", "--force"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a table of numbers" in err[0]
+
+
+@pytest.mark.parametrize("flag, content, said", [
+    ("--fit", b"\xff\xfe\x00not text", "not a readable fit JSON file"),
+    ("--compare", b'{"a": 1}', "not a calib compare file"),
+    ("--diagnose", b'{"schema": "calib.fit/1", "model": "pa"}', "is a calib.fit/1 file, not a calib diagnose file"),
+    ("--fit", b'{"schema": "calib.measure-summary/1"}', "not a calib fit file"),
+])
+def test_report_refuses_a_file_of_another_kind_in_one_line(tmp_path, capsys, flag, content, said):
+    """`calib report` read its JSON inputs unchecked: bytes that are not UTF-8 gave a
+    traceback, a compare/diagnose file of another kind a KeyError, and a fit of another
+    kind an empty report, silently."""
+    p = tmp_path / "x.json"
+    p.write_bytes(content)
+    out = tmp_path / "r.html"
+    assert main(["report", flag, str(p), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and said in err[0] and not out.exists()

@@ -1,7 +1,6 @@
 """`calib report`: one self-contained HTML file for a scan (plots embedded)."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -36,14 +35,18 @@ def add_parser(subparsers):
 
 
 def _load_json(path, what):
+    """A `calib <what>` output, checked by its schema (one line for a file of another kind,
+    not a KeyError deep in the report)."""
+    from calib.fileio import read_json_doc
+
     if not path:
         return None
-    try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise UserError(f"{what} file {path} does not exist") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{what} file {path} is not readable JSON: {exc}") from None
+    hint = f"run `calib {what}` first"
+    doc = read_json_doc(path, "calib.", what, hint)
+    kinds = ("calib.fit/", "calib.fit-map/") if what == "fit" else (f"calib.{what}/",)
+    if not str(doc["schema"]).startswith(kinds):
+        raise UserError(f"{path} is a {doc['schema']} file, not a calib {what} file; {hint}")
+    return doc
 
 
 def run(args) -> int:
