@@ -125,14 +125,21 @@ def _img(data: bytes, alt: str, width: str = "100%", mime: str = "image/png") ->
     return f'<img alt="{html.escape(alt)}" style="max-width:{width}" src="data:{mime};base64,{b64}">'
 
 
-def _image_file(path, max_px: int = 1400) -> bytes:
+def image_file(path, max_px: int = 1400) -> bytes:
     """A JPEG (quality 85) of a photo or scan, at most ``max_px`` on its long side: a
     12 MP photo embedded as PNG made a 6 MB report; as JPEG it is ~0.3 MB."""
     from PIL import Image
-    im = Image.open(path)
-    im.thumbnail((max_px, max_px))
+
+    from calib.errors import UserError
+
     buf = io.BytesIO()
-    im.convert("RGB").save(buf, format="JPEG", quality=85, optimize=True)
+    try:
+        with Image.open(path) as im:
+            im.thumbnail((max_px, max_px))
+            im.convert("RGB").save(buf, format="JPEG", quality=85, optimize=True)
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
+        # PIL's UnidentifiedImageError and a truncated file's "Truncated File Read" are OSErrors
+        raise UserError(f"image {path} cannot be read (corrupt, truncated or not an image: {exc})") from None
     return buf.getvalue()
 
 
@@ -158,7 +165,7 @@ def build_report(title: str, obs=None, comparison=None, diagnosis=None, compare_
         parts.append("<h2>Scan and measurement overlay</h2><div class='grid'>")
         for p, alt in ((scan, "scan"), (overlay, "QA overlay")):
             if p:
-                parts.append(_img(_image_file(p), alt, "48%", "image/jpeg"))
+                parts.append(_img(image_file(p), alt, "48%", "image/jpeg"))
         parts.append("</div>")
     if compare_doc is not None:
         parts.append("<h2>Model comparison</h2>" + _compare_table(compare_doc["models"]))

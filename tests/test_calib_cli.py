@@ -83,11 +83,13 @@ def test_a_fit_json_with_draws_that_are_not_numbers_is_one_line(tmp_path, capsys
     ("--compare", b'{"a": 1}', "not a calib compare file"),
     ("--diagnose", b'{"schema": "calib.fit/1", "model": "pa"}', "is a calib.fit/1 file, not a calib diagnose file"),
     ("--fit", b'{"schema": "calib.measure-summary/1"}', "not a calib fit file"),
+    ("--scan", b"\x89PNG\r\n\x1a\n" + b"x" * 100, "cannot be read (corrupt, truncated"),
+    ("--overlay", b"not an image", "cannot be read (corrupt, truncated"),
 ])
 def test_report_refuses_a_file_of_another_kind_in_one_line(tmp_path, capsys, flag, content, said):
-    """`calib report` read its JSON inputs unchecked: bytes that are not UTF-8 gave a
-    traceback, a compare/diagnose file of another kind a KeyError, and a fit of another
-    kind an empty report, silently."""
+    """`calib report` read its inputs unchecked: JSON bytes that are not UTF-8 gave a
+    traceback, a compare/diagnose file of another kind a KeyError, a fit of another kind an
+    empty report, silently, and a corrupt scan or overlay image PIL's traceback."""
     p = tmp_path / "x.json"
     p.write_bytes(content)
     out = tmp_path / "r.html"

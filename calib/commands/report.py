@@ -52,9 +52,13 @@ def _load_json(path, what):
 def run(args) -> int:
     from calib.report import build_report, write_report
 
+    from calib.report import image_file
+
     for p, what in ((args.scan, "scan"), (args.overlay, "overlay")):
         if p and not Path(p).is_file():
             raise UserError(f"{what} image {p} does not exist")
+        if p:
+            image_file(p, max_px=64)     # a corrupt image refused before minutes of fitting
     compare_doc = _load_json(args.compare, "compare")
     diagnose_doc = _load_json(args.diagnose, "diagnose")
     fit_doc = _load_json(args.fit, "fit")
