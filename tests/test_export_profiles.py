@@ -150,6 +150,8 @@ def test_second_extruder_crlf_symlink_mode_and_no_write_when_unchanged(tmp_path,
     ("marlin", "[extruder]\nstep_pin: PB3\n", "--to klipper"),
     ("orca", "[extruder]\nstep_pin: PB3\n", "--to klipper"),
     ("klipper", "G28\nM900 K0\n", "--to marlin"),
+    # a printer.cfg whose header was cut short is still not a start G-code to append M900 to
+    ("marlin", "[extruder\npressure_advance: 0.1\n", "--to klipper"),
 ])
 def test_a_file_of_another_kind_is_refused_untouched(tmp_path, fit_json, capsys, target, content, hint):
     f = tmp_path / "profile.x"

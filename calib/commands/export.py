@@ -338,6 +338,10 @@ def profile_kind(text: str) -> str:
         return "gcode"
     if any(re.match(r"^[A-Za-z_][A-Za-z0-9_]*\s*=", ln) for ln in lines):
         return "ini"
+    # Klipper's "option: value" without a readable header ("[extruder" cut short): not a
+    # start G-code to append an M900 to
+    if any(re.match(r"^[A-Za-z_][A-Za-z0-9_]*\s*:", ln) for ln in lines):
+        return "klipper"
     return "gcode"
 
 
