@@ -16,6 +16,20 @@ def test_every_verb_is_registered_with_help():
     ["fitt"],
     ["pattern", "spiral-step", "--printer", "adventurer3", "--speeds", "abc", "-o", "x.gcode"],
     ["measure"],
+    # values that are numbers but no print's: NaN/inf were tracebacks in the pattern builder,
+    # a negative seed numpy's traceback, a zero Student-t an optimiser's RuntimeError, and a
+    # negative steady time or a zero line were accepted silently
+    ["pattern", "spiral-step", "--printer", "adventurer3", "--speeds", "15,nan", "-o", "x.gcode"],
+    ["pattern", "spiral-step", "--printer", "adventurer3", "--step-s", "inf", "-o", "x.gcode"],
+    ["pattern", "start-stop", "--printer", "adventurer3", "--draw-s", "nan", "-o", "x.gcode"],
+    ["pattern", "stop-mid-path", "--printer", "adventurer3", "--steady-s", "-1", "-o", "x.gcode"],
+    ["pattern", "retract", "--printer", "adventurer3", "--draw-mm", "0", "-o", "x.gcode"],
+    ["simulate", "x.gcode", "--truth", "t.toml", "--seed", "-1"],
+    ["simulate", "x.gcode", "--truth", "t.toml", "--tilt", "nan"],
+    ["fit", "w.csv", "--manifest", "m.json", "--student-t", "0"],
+    ["fit", "w.csv", "--manifest", "m.json", "--seed", "-1"],
+    ["fit", "w.csv", "--manifest", "m.json", "--chi2-max", "nan"],
+    ["export", "fit.json", "--to", "marlin", "--tool", "-1"],
 ])
 def test_usage_errors_are_one_line(argv, capsys):
     with pytest.raises(SystemExit) as e:
@@ -96,3 +110,10 @@ def test_report_refuses_a_file_of_another_kind_in_one_line(tmp_path, capsys, fla
     assert main(["report", flag, str(p), "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and said in err[0] and not out.exists()
+
+
+def test_a_layer_higher_than_the_nozzle_is_refused(tmp_path, capsys):
+    out = tmp_path / "x.gcode"
+    assert main(["pattern", "spiral-step", "--printer", "adventurer3", "--layer-height", "5", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "more than the nozzle's diameter" in err[0] and not out.exists()

@@ -300,3 +300,27 @@ def test_orca_adaptive_table_from_a_nonlinear_fit(tmp_path, fit_json, capsys):
     rows = [r.split(",") for r in out["adaptive_pressure_advance_model"][0].split("\n")]
     assert all(len(r) == 3 for r in rows) and float(rows[0][0]) == 0.06     # PA,flow,accel
     assert main(["export", fit_json, "--to", "orca-adaptive"]) == 2       # a linear fit
+
+
+def test_an_extruder_stepper_section_is_named_as_klipper_names_it(tmp_path, fit_json, capsys):
+    """[extruder_stepper belt] is SET_PRESSURE_ADVANCE EXTRUDER=belt (Klipper's
+    ExtruderStepper: the section name's last word); a bracketed or empty --section is
+    refused in one line."""
+    assert main(["export", fit_json, "--to", "klipper-gcode", "--section", "extruder_stepper belt"]) == 0
+    assert capsys.readouterr().out.startswith("SET_PRESSURE_ADVANCE EXTRUDER=belt ADVANCE=0.0412")
+    start = tmp_path / "start.gcode"
+    start.write_text("SET_PRESSURE_ADVANCE EXTRUDER=belt ADVANCE=0.1\nSET_PRESSURE_ADVANCE ADVANCE=0.2\n")
+    assert main(["export", fit_json, "--to", "klipper-gcode", "--section", "extruder_stepper belt",
+                 "--profile", str(start)]) == 0
+    assert start.read_text().startswith("SET_PRESSURE_ADVANCE EXTRUDER=belt ADVANCE=0.0412")
+    assert "SET_PRESSURE_ADVANCE ADVANCE=0.2\n" in start.read_text()
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("[extruder]\nstep_pin: PB3\n\n[extruder_stepper belt]\nextruder: extruder\n")
+    assert main(["export", fit_json, "--to", "klipper", "--section", "extruder_stepper belt",
+                 "--profile", str(cfg)]) == 0
+    assert "[extruder_stepper belt]\npressure_advance: 0.0412\n" in cfg.read_text()
+    capsys.readouterr()
+    for bad in ("[extruder1]", "", "extruder x"):
+        assert main(["export", fit_json, "--to", "klipper", "--section", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--section" in err[0]

@@ -14,6 +14,7 @@ import sys
 from concurrent.futures import as_completed
 from pathlib import Path
 
+from calib.argtypes import integer, seed
 from calib.errors import UserError
 from calib.fileio import atomic_write_text
 from calib.parallel import process_pool
@@ -29,10 +30,10 @@ def add_parser(sub):
     p.add_argument("dir", help="folder with widths CSVs and manifests")
     p.add_argument("--model", default="pa", help="effects joined by '+' (default pa)")
     p.add_argument("--priors", help="priors TOML for every fit")
-    p.add_argument("--jobs", type=int, default=2, help="local worker processes (default 2)")
+    p.add_argument("--jobs", type=integer(1), default=2, help="local worker processes (default 2)")
     p.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786)")
-    p.add_argument("--max-steps", type=int, default=20000, help="MCMC step cap per fit")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--max-steps", type=integer(1), default=20000, help="MCMC step cap per fit")
+    p.add_argument("--seed", type=seed, default=0, help="random seed")
     p.add_argument("-o", "--out", help="summary CSV (default DIR/batch_summary.csv)")
     return p
 

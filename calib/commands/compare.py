@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
+from calib.argtypes import integer, seed
 from calib.errors import UserError
 
 
@@ -23,10 +24,10 @@ def add_parser(subparsers):
     p.add_argument("--effects", metavar="FILE.py",
                    help="a Python file with your own Effect classes, usable in --models")
     p.add_argument("--fast", action="store_true", help="MAP fits only (no emcee, no LOO)")
-    p.add_argument("--steps", type=int, default=20000,
+    p.add_argument("--steps", type=integer(1), default=20000,
                    help="cap on emcee steps per walker (the run stops earlier once it has "
                         "converged; a run that hits the cap is reported as not converged)")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--seed", type=seed, default=0, help="random seed")
     p.add_argument("-o", "--output", metavar="compare.json", help="write the comparison as JSON")
     p.add_argument("--plots", metavar="DIR", help="write data-vs-models and residual plots here")
     return p

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from calib.argtypes import integer, seed
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -18,8 +20,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--camera", choices=("flatbed", "phone"), default="flatbed",
                    help="synthetic flatbed scan (600 dpi) or 12 MP phone photo")
     p.add_argument("--model", default="pa", help="base model to start from (default: pa)")
-    p.add_argument("--rounds", type=int, default=2, help="diagnose/extend rounds (default: 2)")
-    p.add_argument("--seed", type=int, default=1, help="random seed")
+    p.add_argument("--rounds", type=integer(0), default=2, help="diagnose/extend rounds (default: 2)")
+    p.add_argument("--seed", type=seed, default=1, help="random seed")
     return p
 
 

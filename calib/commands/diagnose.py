@@ -4,6 +4,8 @@ from __future__ import annotations
 import json
 import sys
 
+from calib.argtypes import integer, seed
+
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
@@ -21,10 +23,10 @@ def add_parser(subparsers):
     p.add_argument("--candidates", metavar="A,B,...",
                    help="try only these library effects (default: every one not in the model); "
                         "effects from --effects are always tried")
-    p.add_argument("--confirm", type=int, default=0, metavar="N",
+    p.add_argument("--confirm", type=integer(0), default=0, metavar="N",
                    help="confirm the N best candidates with a full fit (emcee run to "
                         "convergence + PSIS-LOO)")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--seed", type=seed, default=0, help="random seed")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON on stdout")
     p.add_argument("-o", "--output", metavar="diag.json", help="also write the JSON here")
     p.add_argument("--plots", metavar="DIR", help="write one plot per top covariate here")

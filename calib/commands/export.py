@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.argtypes import integer
 from calib.errors import UserError
 
 TARGETS = ("klipper", "klipper-gcode", "kalico-tanh", "kalico-recipr", "marlin", "rrf", "orca",
@@ -57,9 +58,9 @@ def add_parser(sub):
     p.add_argument("--to", required=True, choices=TARGETS, help="target firmware or slicer")
     p.add_argument("--profile", help="file to update in place (printer.cfg, filament .json, ...)")
     p.add_argument("--section", default="extruder",
-                   help="Klipper: the extruder section to set (extruder1, ... for a tool changer; "
-                        "default extruder)")
-    p.add_argument("--tool", type=int, default=0, metavar="N",
+                   help="Klipper: the extruder section to set (extruder1, ... for a tool changer, "
+                        "'extruder_stepper NAME' for an extra stepper; default extruder)")
+    p.add_argument("--tool", type=integer(0), default=0, metavar="N",
                    help="Marlin/RRF: the extruder (M900 T<N>) or drive (M572 D<N>) to set; other "
                         "tools' lines are left alone (default 0)")
     p.add_argument("--on", metavar="FILE.gcode",
@@ -302,6 +303,17 @@ def report_match(m, target: str) -> None:
         say(("warning: " if m.flow_tested_mm3_s is not None else "note: ") + w)
 
 
+#: the config sections that hold a pressure advance (klippy/kinematics/extruder.py)
+KLIPPER_SECTION = re.compile(r"extruder\d*|extruder_stepper\s+\S+")
+
+
+def klipper_name(section: str) -> str:
+    """What SET_PRESSURE_ADVANCE's EXTRUDER= names for a config section: its last word
+    (Klipper's ExtruderStepper: ``config.get_name().split()[-1]``), so [extruder_stepper
+    belt] is EXTRUDER=belt and [extruder1] is EXTRUDER=extruder1."""
+    return section.split()[-1]
+
+
 def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
     if target == "orca-adaptive":
         return orca_adaptive_table(doc)[0]
@@ -313,7 +325,7 @@ def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
     if target == "kisslicer":
         return f"{KISS_VE_KEY}={ve_value(doc):.3f}"
     k = f"{pa_value(doc):.4f}"
-    extruder = "" if section == "extruder" else f" EXTRUDER={section}"
+    extruder = "" if section == "extruder" else f" EXTRUDER={klipper_name(section)}"
     st = (f"\npressure_advance_smooth_time: {smooth_time_s(doc):.3f}"
           if "klipper_smooth_time_s" in (doc.get("derived") or {}) else "")
     return {"klipper": f"[{section}]\npressure_advance: {k}{st}",
@@ -485,7 +497,7 @@ def update_klipper_macro(text: str, line: str, k: str, section: str, smooth: str
         if not re.match(r"\s*SET_PRESSURE_ADVANCE\b", ln, re.IGNORECASE):
             continue
         ex = re.search(r"\bEXTRUDER=(\S+)", ln, re.IGNORECASE)
-        if (ex.group(1) if ex else "extruder") != section:
+        if (ex.group(1) if ex else "extruder") != klipper_name(section):
             continue
         hit = True
         if re.search(r"\bADVANCE=", ln, re.IGNORECASE):
@@ -561,6 +573,10 @@ def run(args) -> int:
         spoolman.check_key(args.field_key)
         if args.spool_id is not None and args.spool_id < 1:
             raise UserError(f"--spool-id {args.spool_id}: Spoolman spool ids start at 1")
+    if args.to.startswith(("klipper", "kalico")) and not KLIPPER_SECTION.fullmatch(args.section.strip()):
+        raise UserError(f"--section {args.section!r}: Klipper keeps pressure advance in [extruder], "
+                        "[extruder1], ... or [extruder_stepper NAME]; give the name without brackets")
+    args.section = " ".join(args.section.split())
     check_trust(doc, args.force)
     if args.on and args.to not in MATCH_TARGETS:
         raise UserError(f"--on chooses a pressure-advance value; --to {args.to} has none "

@@ -11,6 +11,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from calib.argtypes import integer, positive, seed
 from calib.errors import UserError
 
 EXIT_NOT_CONVERGED = 3
@@ -36,7 +37,7 @@ def add_parser(sub):
                         "reduced chi-square falls; the chain is printed")
     p.add_argument("--priors", help="TOML file overriding parameter priors (see fit/priors.py)")
     p.add_argument("--effects", help="Python file with user Effect classes")
-    p.add_argument("--student-t", type=float, default=None, metavar="NU",
+    p.add_argument("--student-t", type=positive, default=None, metavar="NU",
                    help="Student-t noise with NU degrees of freedom (robust to outliers)")
     p.add_argument("--no-ar1", action="store_true", help="the bead's wobble uncorrelated along the track: samples independent (not advised)")
     p.add_argument("--constant-wobble", action="store_true",
@@ -54,15 +55,15 @@ def add_parser(sub):
     p.add_argument("--ignore-missing", action="store_true",
                    help="drop the stations flagged 'missing' (no bead seen) instead of fitting "
                         "them as beads narrower than the scan can see (default: fit them)")
-    p.add_argument("--max-steps", type=int, default=20000, help="cap on MCMC steps (default 20000)")
-    p.add_argument("--max-time", type=float, default=None, metavar="S", help="cap on wall time (s)")
+    p.add_argument("--max-steps", type=integer(1), default=20000, help="cap on MCMC steps (default 20000)")
+    p.add_argument("--max-time", type=positive, default=None, metavar="S", help="cap on wall time (s)")
     p.add_argument("--map-only", action="store_true", help="only the MAP fit (fast, no posterior)")
-    p.add_argument("--jobs", type=int, default=None,
+    p.add_argument("--jobs", type=integer(1), default=None,
                    help="threads for the physics kernels (default: every core)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--out", default="fit.json", help="output fit.json (default fit.json)")
     p.add_argument("--plots", metavar="DIR", help="write width/residual and corner plots here")
-    p.add_argument("--chi2-max", type=float, default=None, metavar="X",
+    p.add_argument("--chi2-max", type=positive, default=None, metavar="X",
                    help="reduced chi-square above which the fit is called a misfit and export "
                         "refuses its values (default 2.0, see fit/trust.py)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -319,10 +320,6 @@ def run(args) -> int:
         for f in (w, m):
             if not Path(f).exists():
                 raise UserError(f"{f} does not exist")
-    if args.max_steps < 1:
-        raise UserError("--max-steps must be >= 1")
-    if args.jobs is not None and args.jobs < 1:
-        raise UserError("--jobs must be >= 1")
     from fit.kernels import set_threads
 
     set_threads(args.jobs)

@@ -4,6 +4,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from calib.argtypes import positive
+
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
@@ -20,7 +22,7 @@ def add_parser(subparsers):
     p.add_argument("--summary", help="JSON summary to write (residual, fraction valid, flags, warnings)")
     p.add_argument("--points", help='point hints "x_mm,y_mm=u_px,v_px;..." (>= 4) for prints without fiducials '
                    "(default: the pose is found automatically from the track layout)")
-    p.add_argument("--max-residual-mm", type=float, default=0.1,
+    p.add_argument("--max-residual-mm", type=positive, default=0.1,
                    help="refuse a registration with a larger residual (mm; default 0.1)")
     return p
 
@@ -30,8 +32,6 @@ def run(args) -> int:
     from patterns.manifest import Manifest
     from calib.errors import UserError
 
-    if args.max_residual_mm is not None and not args.max_residual_mm > 0:
-        raise UserError(f"--max-residual-mm must be positive, not {args.max_residual_mm:g}")
     man = Manifest.load(args.manifest)
     try:
         res = measure_scan(args.scan, man, points=args.points, overlay_path=None,

@@ -4,21 +4,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from calib.argtypes import integer, number, numbers, positive
 from calib.errors import UserError
 
-
-def _floats(text: str) -> list[float]:
-    try:
-        vals = [float(v) for v in str(text).split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-    if not vals:
-        raise argparse.ArgumentTypeError("expected at least one number")
-    return vals
+_pos = numbers(0.0, lo_open=True)      # speeds, times, widths: > 0, finite
 
 
 def _ints(text: str) -> list[int]:
-    return [int(v) for v in _floats(text)]
+    return [int(v) for v in numbers()(text)]
 
 
 _COMMON = dict(help="printer profile: a .toml path or a shipped name (adventurer3, long_bowden, "
@@ -43,29 +36,29 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                                     "levels every --step-s seconds, not synchronised with the angle "
                                     "(Duet3D, seed 004). One spiral per speed x step duration.")
     common(sp)
-    sp.add_argument("--speeds", type=_floats, default=[15.0, 30.0], help="head speeds, mm/s (default 15,30)")
-    sp.add_argument("--step-s", type=_floats, default=[6.0], help="step durations, s (default 6)")
-    sp.add_argument("--steps", type=int, default=8, help="width levels per spiral (default 8)")
-    sp.add_argument("--widths", type=_floats, default=[0.35, 0.8], help="width levels, mm (default 0.35,0.8)")
-    sp.add_argument("--layer-height", type=float, default=0.2, help="layer height, mm (default 0.2)")
+    sp.add_argument("--speeds", type=_pos, default=[15.0, 30.0], help="head speeds, mm/s (default 15,30)")
+    sp.add_argument("--step-s", type=_pos, default=[6.0], help="step durations, s (default 6)")
+    sp.add_argument("--steps", type=integer(1), default=8, help="width levels per spiral (default 8)")
+    sp.add_argument("--widths", type=_pos, default=[0.35, 0.8], help="width levels, mm (default 0.35,0.8)")
+    sp.add_argument("--layer-height", type=positive, default=0.2, help="layer height, mm (default 0.2)")
 
     sp = sub.add_parser("stop-mid-path", help="extrusion stops mid-line, head coasts (seed 000)",
                         description="Straight lines whose extrusion stops mid-path while the head keeps "
                                     "moving: exponential feed ramp v0 exp(-t/tau), constant feed, and the "
                                     "KISSlicer wizard variant (stop, wiper, wait 3 s, retract).")
     common(sp)
-    sp.add_argument("--speeds", type=_floats, default=[20.0, 40.0], help="head speeds v0, mm/s (default 20,40)")
-    sp.add_argument("--tau", type=_floats, default=None,
+    sp.add_argument("--speeds", type=_pos, default=[20.0, 40.0], help="head speeds v0, mm/s (default 20,40)")
+    sp.add_argument("--tau", type=_pos, default=None,
                     help="tau guesses for the feed ramp, s (default: seed-000 estimate x 0.5,1,2)")
     sp.add_argument("--variants", default="exp,const,wizard", help="any of exp,const,wizard (default all)")
-    sp.add_argument("--steady-s", type=float, default=None, help="printing time before the stop, s")
-    sp.add_argument("--wizard-wait-s", type=float, default=3.0,
+    sp.add_argument("--steady-s", type=positive, default=None, help="printing time before the stop, s")
+    sp.add_argument("--wizard-wait-s", type=number(0.0), default=3.0,
                     help="wizard variant: wait after the wipe, s (default 3); the printer's display "
                          "says where to hold the wiper card (M117)")
-    sp.add_argument("--width", type=_floats, default=None,
+    sp.add_argument("--width", type=_pos, default=None,
                     help="bead width, mm; several alternate over the lines (default 1.2 and 2 x "
                          "nozzle: the bead's back-pressure needs two widths)")
-    sp.add_argument("--layer-height", type=float, default=0.2, help="layer height, mm (default 0.2)")
+    sp.add_argument("--layer-height", type=positive, default=0.2, help="layer height, mm (default 0.2)")
 
     sp = sub.add_parser("retract", help="steady lines then a moving retraction (seed 001 RetractTest)",
                         description="Seed-001 RetractTest designs: prime/drain/restore, a steady line, then "
@@ -73,9 +66,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                                     "measures the pressure.")
     common(sp)
     sp.add_argument("--designs", type=_ints, default=[1, 2, 3, 4], help="seed-001 designs 1..4 (default all)")
-    sp.add_argument("--steps", type=int, default=6, help="lines per design (default 6)")
-    sp.add_argument("--draw-mm", type=float, default=40.0, help="steady line length, mm (default 40)")
-    sp.add_argument("--restore-mm", type=float, default=None,
+    sp.add_argument("--steps", type=integer(1), default=6, help="lines per design (default 6)")
+    sp.add_argument("--draw-mm", type=positive, default=40.0, help="steady line length, mm (default 40)")
+    sp.add_argument("--restore-mm", type=number(0.0), default=None,
                     help="restore Re before the line, mm of filament (default: seed 001's 1 mm on the "
                          "Adventurer 3, scaled by the profile's Bowden length: 0.1 mm on a direct drive)")
 
@@ -84,13 +77,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                                     "drool check, restore, cooldown; sweeps Re within a ring group and w "
                                     "between groups.")
     common(sp)
-    sp.add_argument("--re-mm", type=_floats, default=None,
+    sp.add_argument("--re-mm", type=numbers(0.0), default=None,
                     help="restore distances, mm of filament (default: seed 001's 2-4 mm on the Adventurer 3, "
                          "scaled by the profile's Bowden length: 0.2-0.4 mm on a direct drive)")
-    sp.add_argument("--widths", type=_floats, default=[0.3, 0.4, 0.8, 1.6], help="bead widths, mm")
-    sp.add_argument("--ve", type=float, default=1.0, help="extruder velocity while drawing, mm/s (default 1)")
-    sp.add_argument("--layer-height", type=float, default=0.3, help="layer height, mm (default 0.3)")
-    sp.add_argument("--draw-s", type=float, default=3.0, help="drawing time per test, s (default 3)")
+    sp.add_argument("--widths", type=_pos, default=[0.3, 0.4, 0.8, 1.6], help="bead widths, mm")
+    sp.add_argument("--ve", type=positive, default=1.0, help="extruder velocity while drawing, mm/s (default 1)")
+    sp.add_argument("--layer-height", type=positive, default=0.3, help="layer height, mm (default 0.3)")
+    sp.add_argument("--draw-s", type=positive, default=3.0, help="drawing time per test, s (default 3)")
     return p
 
 
@@ -158,6 +151,11 @@ def run(args) -> int:
     if out.suffix.lower() not in (".gcode", ".g", ".gco"):
         raise UserError(f"output {out} should end in .gcode")
     profile = load_profile(args.printer)
+    h = getattr(args, "layer_height", None)
+    if h is not None and h > profile.nozzle_diameter_mm:
+        # a bead higher than the nozzle is wide is no bead the width model describes
+        raise UserError(f"--layer-height {h:g} mm is more than the nozzle's diameter "
+                        f"({profile.nozzle_diameter_mm:g} mm); a single layer is 0.1-0.75 nozzle diameters")
     gcode, manifest = PATTERNS[args.pattern](profile, **_kwargs(args))
     manifest.gcode = out.name
     mpath = _write_all(out, gcode, manifest)

@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from calib.commands.pattern import write_error
+from calib.argtypes import number, positive
 from calib.errors import UserError
 from patterns.manifest import manifest_path_for, timeline_path_for
 
@@ -25,9 +27,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "long_bowden, direct_drive, ender3)")
     p.add_argument("-o", "--output", default=None,
                    help="manifest path (default: GCODE name with .manifest.json)")
-    p.add_argument("--layer-height-mm", type=float, default=None,
+    p.add_argument("--layer-height-mm", type=positive, default=None,
                    help="bead height (mm) for every track; default: from the z levels")
-    p.add_argument("--min-test-length-mm", type=float, default=3.0,
+    p.add_argument("--min-test-length-mm", type=number(0.0), default=3.0,
                    help="unlabelled extrusion runs shorter than this (mm) are kind 'other' "
                         "(default 3.0)")
     p.add_argument("--tracks", metavar="IDS",
@@ -70,6 +72,8 @@ def run(args) -> int:
     if args.z_range_mm:
         try:
             lo, hi = (float(v) for v in args.z_range_mm.split(","))
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError
         except ValueError:
             raise UserError(f"--z-range-mm takes LO,HI in mm, not {args.z_range_mm!r}") from None
         zr = (min(lo, hi), max(lo, hi))

@@ -5,6 +5,7 @@ import argparse
 from pathlib import Path
 
 from calib.commands.pattern import write_error
+from calib.argtypes import integer
 from calib.errors import UserError
 
 
@@ -20,7 +21,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--printer", default=None,
                    help="printer profile (.toml path or shipped name); needed when there is no "
                         "manifest next to the G-code, and draws the bed outline")
-    p.add_argument("--dpi", type=int, default=150, help="PNG resolution (default 150)")
+    p.add_argument("--dpi", type=integer(1), default=150, help="PNG resolution (default 150)")
     return p
 
 

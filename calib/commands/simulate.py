@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.argtypes import number, positive, seed
 from calib.errors import UserError
 
 _IMAGE_EXT = {".png": ".png", ".jpg": ".jpg", ".jpeg": ".jpg", ".tif": ".tif", ".tiff": ".tif"}
@@ -37,8 +38,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="printer profile (.toml or shipped name); needed when there is no manifest "
                         "next to the G-code")
     p.add_argument("--camera", choices=("flatbed", "phone"), default="flatbed", help="picture kind (default flatbed)")
-    p.add_argument("--dpi", type=float, default=600.0, help="flatbed resolution, 300-1200 (default 600)")
-    p.add_argument("--tilt", type=float, default=25.0, help="phone tilt from top-down, degrees 0-45 (default 25)")
+    p.add_argument("--dpi", type=positive, default=600.0, help="flatbed resolution, 300-1200 (default 600)")
+    p.add_argument("--tilt", type=number(), default=25.0, help="phone tilt from top-down, degrees 0-45 (default 25)")
     p.add_argument("--plate", choices=("dark", "light"), default="dark", help="build plate (default dark, textured)")
     p.add_argument("--plastic", choices=("opaque", "translucent"), default="opaque", help="filament (default opaque)")
     p.add_argument("--jpeg-quality", type=int, default=None,
@@ -49,7 +50,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "'all', 'none', or a comma list of " + ", ".join(_phenomena()) +
                         " ('all,sparkle': all and a textured plate's specks, which 'all' leaves out; "
                         "measure/phenomena.py); default: all for --camera phone, none for flatbed")
-    p.add_argument("--seed", type=int, default=0, help="random seed for the picture (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed for the picture (default 0)")
     p.add_argument("--effects", default=None, help="Python file with user effects named in TRUTH.toml")
     p.add_argument("--plot", action="store_true", help="also write SCAN.widths.png: true vs commanded widths")
     return p
