@@ -91,9 +91,23 @@ def _print_params(r: _Runner, fit: dict, truth_values: dict) -> None:
         r.say(f"   {name:26s} {p['median']:10.4g}  [{lo:9.4g}, {hi:9.4g}]  {ts}")
 
 
+def _start_model(widths, manifest) -> str:
+    from fit.compare import observe
+    from fit.measurement import start_for
+    from measure.table import WidthTable
+    from patterns.manifest import Manifest
+
+    return start_for(observe(Manifest.load(manifest), WidthTable.load(widths)), widths)[0]
+
+
 def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, camera: str = "flatbed",
-             base_model: str = "pa", seed: int = 1, rounds: int = 2, stream=sys.stdout) -> dict:
-    """Run the loop into ``out_dir``; return a summary dict (also written as demo.json)."""
+             base_model: str | None = None, seed: int = 1, rounds: int = 2, stream=sys.stdout) -> dict:
+    """Run the loop into ``out_dir``; return a summary dict (also written as demo.json).
+    ``base_model`` None: where `calib fit --model auto` starts on the measured widths
+    (fit.measurement.start_for): ``pa`` on a calibrated flatbed scan, ``pa+scan_bias``
+    (and the picture's nuisances) on a phone's apparent widths, whose unknown offset the
+    diagnosis would otherwise name as flow_gain (a phone demo from ``pa``: flow_gain 0.90,
+    then back-pressure, never the thermal ooze)."""
     from calib.fileio import atomic_write_text
     from fit.truth import load_truth
 
@@ -106,7 +120,8 @@ def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, ca
     out.mkdir(parents=True, exist_ok=True)
     r = _Runner(out, stream)
     r.say(f"calib demo: the virtual printer '{printer}' runs the hidden truth {truth.name} "
-          f"({spec_true}); we fit '{base_model}' and let the diagnosis find what is missing.")
+          f"({spec_true}); we fit " + (f"'{base_model}'" if base_model else "the base model")
+          + " and let the diagnosis find what is missing.")
 
     gcode, man = out / "spiral.gcode", out / "spiral.manifest.json"
     scan, widths, qa = out / "scan.png", out / "widths.csv", out / "qa.png"
@@ -124,6 +139,10 @@ def run_demo(out_dir, printer: str = "adventurer3", truth: str | None = None, ca
           f"{err['bias_mm'] * 1000:+.1f} um over {err['n']} samples "
           f"({err['valid_fraction']:.0%} valid)")
 
+    if base_model is None:
+        base_model = _start_model(widths, man)
+        r.say(f"   base model '{base_model}': where `calib fit --model auto` starts on these widths"
+              + (" (apparent widths: scan_bias takes their unknown offset)" if "scan_bias" in base_model else ""))
     history = []
     model = base_model
     step_no = 5

@@ -169,6 +169,14 @@ def auto_start(scan: str, cal: dict | None, light: bool = False,
     return "pa+scan_bias" + tail, prior_overrides(state, ["scan_bias.b0_mm", *shift_names])
 
 
+def start_for(scan, widths_path) -> tuple[str, dict[str, dict]]:
+    """:func:`auto_start` for ``scan`` (fit.data.ScanData observed from the widths CSV
+    ``widths_path``), read from what `calib measure` wrote beside those widths."""
+    return auto_start(scan.name, load_calibration(widths_path),
+                      light_varies(scan.table.light_angle_deg[scan.table.valid]),
+                      load_along_sd(widths_path))
+
+
 def notes(states: list[dict], has_scan_bias: bool, has_view_shift: bool = False) -> list[str]:
     """One plain sentence per scan whose widths are apparent widths, and per scan whose
     stations the pose places along their tracks only to ALONG_SD_MM or worse when the model

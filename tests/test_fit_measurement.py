@@ -112,6 +112,17 @@ def test_model_auto_starts_with_scan_bias_on_apparent_widths(tmp_path, monkeypat
                 priors=str(tmp_path / "q.toml"))
 
 
+@pytest.mark.parametrize("cal,base", [(UNCAL, "pa+scan_bias"), (CAL, "pa")])
+def test_the_demo_starts_where_model_auto_starts(tmp_path, cal, base):
+    """`calib demo --camera phone` started from `pa` on apparent widths, and its diagnosis
+    named their unknown offset `flow_gain` (0.90) where the truth is thermal ooze and
+    back-pressure; it now starts where --model auto does."""
+    from calib.demo import _start_model
+
+    (widths, manifest), = scan_with_summary(tmp_path, cal)
+    assert _start_model(widths, manifest) == base
+
+
 def test_search_priors_apply_only_to_models_that_have_the_parameter():
     from fit.compare import _problem
     from fit.hidden import make_case

@@ -19,7 +19,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="TRUTH.toml of the virtual printer (default: data/truths/bowden.toml)")
     p.add_argument("--camera", choices=("flatbed", "phone"), default="flatbed",
                    help="synthetic flatbed scan (600 dpi) or 12 MP phone photo")
-    p.add_argument("--model", default="pa", help="base model to start from (default: pa)")
+    p.add_argument("--model", default=None,
+                   help="base model to start from (default: where `calib fit --model auto` starts: "
+                        "pa, or pa+scan_bias on apparent widths such as a phone's)")
     p.add_argument("--rounds", type=integer(0), default=2, help="diagnose/extend rounds (default: 2)")
     p.add_argument("--seed", type=seed, default=1, help="random seed")
     return p

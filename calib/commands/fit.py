@@ -294,9 +294,7 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     scan = observe(manifest, WidthTable.load(widths))
     if not missing:
         scan.missing_idx = scan.missing_idx[:0]
-    base, pri = measurement.auto_start(scan.name, measurement.load_calibration(widths),
-                                       measurement.light_varies(scan.table.light_angle_deg[scan.table.valid]),
-                                       measurement.load_along_sd(widths))
+    base, pri = measurement.start_for(scan, widths)
     user = load_priors_file(priors) if priors else {}
     # the search applies a prior to the models that have it; a name no effect has is a typo
     known = {f"{c.name}.{p.name}" for c in [*REGISTRY.values(), *extra] for p in c.params}
