@@ -58,6 +58,7 @@ from scipy.optimize import minimize, minimize_scalar
 from calib.errors import UserError
 from fit.effects import Effect, _pa_velocity, triangular_smooth
 from fit.noise_envelope import _hull
+from fit.nuisance import NOT_PASTED
 from fit.params import Param
 
 #: head speeds (mm/s) of the standard reference print's lines
@@ -86,8 +87,10 @@ EDGE_FRACTION = 0.01
 MAX_REFERENCE_S = 90.0
 #: a reference flow this much above the highest tested flow is an extrapolation
 EXTRAPOLATION_MARGIN = 1.05
-#: station-stage nuisances and inputs that are not the printer's extrusion dynamics
-NOT_DYNAMICS = frozenset({"scan_bias", "heading", "bed_tilt", "flow_gain", "firmware_pa"})
+#: what is not the printer's extrusion dynamics: inputs, the bed's geometry, a static gain,
+#: the bead's own spread and the picture's nuisances (fit/nuisance.py NOT_PASTED); a phone
+#: fit of pa+scan_bias+view_light had been matched as "more than linear PA"
+NOT_DYNAMICS = frozenset({"heading", "bed_tilt", "bed_mesh", "flow_gain", "firmware_pa", *NOT_PASTED})
 #: adaptive table rows the compensation effect can hold
 N_TABLE = 16
 #: Draws of each envelope (fit.json ``envelope_samples``) the K interval is taken over.

@@ -51,6 +51,16 @@ def write(tmp_path, doc, name="fit.json"):
     return str(p)
 
 
+def test_the_bead_and_the_picture_are_not_dynamics():
+    """pa with the picture's and the bead's nuisances is linear PA: tau cancels it, and no
+    "more than linear PA" width match runs (a phone fit of pa+scan_bias+view_light did)."""
+    vals = {"pa.tau_s": TAU, "scan_bias.b0_mm": -0.04, "view_light.o0_mm": 0.004, "spread.sigma_mm": 0.15,
+            "bed_mesh.dz11_mm": 0.01}
+    phys = fm.physics_from_fit(fit_doc(vals, "pa+scan_bias+view_light+spread+bed_mesh", n=4), n_draws=2)
+    assert phys.linear and phys.spec == "pa"
+    assert set(phys.dropped) == {"scan_bias", "view_light", "spread", "bed_mesh"}
+
+
 def test_linear_physics_optimum_is_tau_and_prints_the_commanded_widths(ref):
     doc = fit_doc({"pa.tau_s": TAU}, "pa", n=8, rel_sd=0.0)
     phys = fm.physics_from_fit(doc, n_draws=1)
