@@ -37,6 +37,13 @@ Problems
   ``spread``) is decisively in the data (Delta BIC >= 10) and moves a physical value
   outside its 95 % interval: the number is biased by what the model leaves out, though
   nothing else shows it (on realistic renders `pa` read tau 4 % high at chi2_nu_bead ~1).
+- ``missing effect``: a fit between a right model's reduced chi-square and the misfit
+  line (chi2_nu_bead > ``MISSING_GATE``, 1.5) is refitted with each extrusion-dynamics
+  effect of the library it lacks (fit/nuisance.py missing_check; not with `--model auto`,
+  whose chain asked them); one decisively in the data (Delta BIC >= 10) that moves a
+  pasted value outside its 95 % interval is a problem. `calib demo --camera phone` fitted
+  pa+scan_bias+view_light to a printer with thermal ooze and back-pressure at 1.94, no
+  residual structure beyond p 0.035: tau 1.156 [1.110, 1.212] s, trusted, truth 0.8.
 - ``at a bound``: the 95 % interval of a physical parameter reaches within
   ``BOUND_FRACTION`` (2 %) of the prior range (in log units for positive parameters) of
   a bound that is a range limit, not the "effect absent" value 0: the data want a value
@@ -202,6 +209,19 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
                         f"(BIC {c['delta_bic']:.0f} better) and moves {moved}, outside the 95 % interval: "
                         f"fit `{c['model']}`")
     checks["nuisance"] = nuisance
+    # fit/nuisance.py missing_check: the library's dynamics effects, asked of fits between a
+    # right model's reduced chi-square and the misfit line
+    missing = sorted((c for c in (diag.get("missing_effects") or [])
+                      if c.get("delta_bic", 0) >= DECISIVE_BIC and c.get("moved")),
+                     key=lambda c: -c["delta_bic"])
+    if missing:
+        c = missing[0]
+        moved = ", ".join(f"{n} from {a:.4g} to {b:.4g}" for n, (a, b) in c["moved"].items())
+        others = "".join(f", `{o['effect']}` {o['delta_bic']:.0f}" for o in missing[1:3])
+        problems.append(f"the data support `{c['effect']}`, which the model lacks (BIC {c['delta_bic']:.0f} "
+                        f"better{others}), and with it {moved}, outside the 95 % interval: the fit is "
+                        f"good enough to pass the misfit check ({chi2:.2f}) but not to be right")
+    checks["missing_effects"] = missing
     at_bound = []
     # the posterior's own interval: one the width offset's doubt widened (fit/offset_envelope.py)
     # may reach a bound because of that doubt, not because the data want the bound
@@ -309,6 +329,9 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
 
     if nuisance and not (any("does not fit" in p for p in problems) or structured):
         advice = f"fit `{nuisance[0]['model']}` instead (`calib fit ... --model {nuisance[0]['model']}`)"
+    elif missing and not (any("does not fit" in p for p in problems) or structured):
+        advice = (f"fit `{missing[0]['model']}` (`calib fit ... --model {missing[0]['model']}`), or let "
+                  f"`calib fit ... --model auto` grow the model, and check it with `calib diagnose`")
     elif no_offset and (any("does not fit" in p for p in problems) or structured):
         advice = (f"the widths are apparent widths (their edge offset could not be calibrated) and the "
                   f"model has no scan_bias: fit `{spec}+scan_bias` first (`calib fit ... --model "

@@ -240,3 +240,37 @@ def test_a_shift_of_every_station_along_its_track_is_view_shifts_and_leaves_tau_
     plain = fit_map(make_problem("pa", shifted), seed=0, global_search=True)
     assert abs(plain.values["pa.tau_s"] / 0.043 - 1) > 2 * abs(m.values["pa.tau_s"] / 0.043 - 1)
     assert m.bic < plain.bic - DECISIVE_BIC
+
+
+def test_a_missing_dynamics_effect_that_moves_tau_is_a_problem_and_none_on_the_right_model():
+    """fit/nuisance.py missing_check: pa fitted to a bead back-pressure printer (Kb 0.5,
+    w_sat 0.8 mm), the library's dynamics effects refitted one by one: back-pressure is
+    decisively in the data and moves tau, and the verdict names it with the model to fit;
+    on the right model (pa+backpressure) none does. The picture's nuisances and the bed
+    are not asked (they are not what PA acts on)."""
+    from fit.nuisance import missing_check
+
+    sc = _scan("pa+backpressure", {"pa.tau_s": 0.043, "backpressure.kb": 0.5,
+                                   "backpressure.w_sat_mm": 0.8}, 0)
+
+    def run(spec):
+        pb = make_problem(build_model(spec, PROF), sc)
+        m = fit_map(pb, seed=0, global_search=True)
+        sd = np.sqrt(np.diag(m.cov))
+        ci95 = {n: (v - 1.96 * s, v + 1.96 * s) for n, v, s in zip(m.param_names, m.theta, sd)}
+        return m, missing_check(lambda s: make_problem(build_model(s, PROF), sc), spec, m.values, m.bic, ci95)
+
+    m, res = run("pa")
+    asked = {r["effect"] for r in res}
+    assert "backpressure" in asked and not asked & {"scan_bias", "view_light", "bed_mesh", "spread", "flow_gain"}
+    best = max(res, key=lambda r: r["delta_bic"])
+    assert best["effect"] == "backpressure" and best["delta_bic"] >= DECISIVE_BIC and "pa.tau_s" in best["moved"]
+    doc = {"converged": True, "information": {"chi2_nu": 1.7, "chi2_nu_bead": 1.7, "n_obs": 1000},
+           "params": {}, "priors": {}, "diagnostics": {"missing_effects": res}}
+    v = assess(doc)
+    assert not v.trustworthy and "the data support `backpressure`" in v.problems[0]
+    assert "pa+backpressure" in v.advice
+    _, right = run("pa+backpressure")
+    assert not [r for r in right if r["delta_bic"] >= DECISIVE_BIC and r["moved"]]
+    doc["diagnostics"]["missing_effects"] = right
+    assert assess(doc).trustworthy

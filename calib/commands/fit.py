@@ -194,7 +194,7 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
 
     rs = res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
     if len(data.scans) == 1:    # a joint fit's per-scan parameters make the refit ambiguous; skipped
-        from fit.nuisance import nuisance_check, structure_check
+        from fit.nuisance import MISSING_GATE, missing_check, nuisance_check, structure_check
 
         def extended(spec):
             return make_problem(spec, data, noise, {**cal, **user} or None, extra)
@@ -204,6 +204,10 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         if is_structured(rs):
             rs["refits"] = structure_check(extended, model_spec, rs["covariate"], res.map.values,
                                            res.map.bic, ci95, seed=seed)
+        if auto is None and res.map.chi2_nu_bead > MISSING_GATE:
+            # --model auto's chain has already asked the library's effects
+            res.diagnostics["missing_effects"] = missing_check(extended, model_spec, res.map.values,
+                                                               res.map.bic, ci95, seed=seed)
     from fit.offset_envelope import widen_offset
 
     # the calibration's doubt of the widths' offset, which a model without scan_bias takes as 0
