@@ -100,8 +100,9 @@ def refit_with(make_problem, spec: str, effect: str, start: dict, map_values: di
 
 
 #: A fit whose reduced chi-square with the bead's wobble allowed (chi2_nu_bead) exceeds this
-#: is asked :func:`missing_check`: between a right model's ~1 and the verdict's misfit
-#: line (2.0) a model can lack an effect that biases what is pasted. `calib demo --camera
+#: but not the verdict's misfit line (2.0, refused already) is asked :func:`missing_check`:
+#: between a right model's ~1 and that line a model can lack an effect that biases what is
+#: pasted. `calib demo --camera
 #: phone` fitted pa+scan_bias+view_light to a printer with thermal ooze and back-pressure
 #: at 1.94 with no residual structure beyond p 0.035: tau 1.156 [1.110, 1.212] s, "OK",
 #: for a truth of 0.8.

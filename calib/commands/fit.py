@@ -204,8 +204,9 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         if is_structured(rs):
             rs["refits"] = structure_check(extended, model_spec, rs["covariate"], res.map.values,
                                            res.map.bic, ci95, seed=seed)
-        if auto is None and res.map.chi2_nu_bead > MISSING_GATE:
-            # --model auto's chain has already asked the library's effects
+        if auto is None and MISSING_GATE < res.map.chi2_nu_bead <= chi2_max:
+            # --model auto's chain has already asked the library's effects; a misfit is
+            # refused already, and its advice is `calib diagnose`
             res.diagnostics["missing_effects"] = missing_check(extended, model_spec, res.map.values,
                                                                res.map.bic, ci95, seed=seed)
     from fit.offset_envelope import widen_offset
