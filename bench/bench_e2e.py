@@ -186,12 +186,12 @@ def measured_scan(case: str, seed: int, realism: str | None = None):
 
 def _one(job):
     from fit.model import build_model
-    from fit.nuisance import nuisance_check, structure_check
+    from fit.nuisance import MISSING_GATE, missing_check, nuisance_check, structure_check
     from fit.sampler import fit_map, fit_mcmc, make_problem
     from fit.measurement import prior_overrides, scatter
     from fit.noise_envelope import widen
     from fit.offset_envelope import widen_offset
-    from fit.trust import assess, is_structured, residual_structure
+    from fit.trust import CHI2_NU_MAX, assess, is_structured, residual_structure
     from patterns.profile import load_profile
 
     spec, seed = job
@@ -227,6 +227,9 @@ def _one(job):
             if is_structured(rs):
                 rs["refits"] = structure_check(problem, m, rs["covariate"], r.map.values, r.map.bic, ci95,
                                                seed=seed)
+            if MISSING_GATE < r.map.chi2_nu_bead <= CHI2_NU_MAX:
+                r.diagnostics["missing_effects"] = missing_check(problem, m, r.map.values, r.map.bic, ci95,
+                                                                 seed=seed)
             # the intervals `calib fit` reports: widened by the width calibration's doubt where
             # the model has no scan_bias, and to hold the short-wobble fit too
             widen_offset(pb, r, states, seed=seed)
