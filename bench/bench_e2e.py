@@ -186,12 +186,12 @@ def measured_scan(case: str, seed: int, realism: str | None = None):
 
 def _one(job):
     from fit.model import build_model
-    from fit.nuisance import MISSING_GATE, missing_check, nuisance_check, structure_check
+    from fit.nuisance import refit_checks
     from fit.sampler import fit_map, fit_mcmc, make_problem
     from fit.measurement import prior_overrides, scatter
     from fit.noise_envelope import widen
     from fit.offset_envelope import widen_offset
-    from fit.trust import CHI2_NU_MAX, assess, is_structured, residual_structure
+    from fit.trust import assess, residual_structure
     from patterns.profile import load_profile
 
     spec, seed = job
@@ -221,15 +221,8 @@ def _one(job):
             r = fit_mcmc(pb, map_result=fit_map(pb, seed=seed, global_search=True), seed=seed, progress=False,
                          n_loo_draws=50)
             # the verdict `calib fit` would print (fit/trust.py): is a miss flagged?
-            rs = r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
-            ci95 = {n: p.ci95 for n, p in r.params.items()}
-            r.diagnostics["nuisance"] = nuisance_check(problem, m, r.map.values, r.map.bic, ci95, seed=seed)
-            if is_structured(rs):
-                rs["refits"] = structure_check(problem, m, rs["covariate"], r.map.values, r.map.bic, ci95,
-                                               seed=seed)
-            if MISSING_GATE < r.map.chi2_nu_bead <= CHI2_NU_MAX:
-                r.diagnostics["missing_effects"] = missing_check(problem, m, r.map.values, r.map.bic, ci95,
-                                                                 seed=seed)
+            r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
+            refit_checks(problem, m, r, seed=seed)
             # the intervals `calib fit` reports: widened by the width calibration's doubt where
             # the model has no scan_bias, and to hold the short-wobble fit too
             widen_offset(pb, r, states, seed=seed)

@@ -65,8 +65,8 @@ def reference_tau(values, man) -> tuple[float, float]:
 def _fit(case, seed):
     from fit.model import build_model
     from fit.sampler import fit_map, fit_mcmc, make_problem
-    from fit.nuisance import structure_check
-    from fit.trust import assess, is_structured, residual_structure
+    from fit.nuisance import refit_checks
+    from fit.trust import assess, residual_structure
     from patterns.profile import load_profile
 
     label, spec, values, model, spiral, mis = case
@@ -75,11 +75,9 @@ def _fit(case, seed):
     pb = make_problem(build_model(model, prof), sc)
     r = fit_mcmc(pb, map_result=fit_map(pb, seed=seed, global_search=True), seed=seed,
                  progress=False, max_steps=8000, n_loo_draws=100)
-    rs = r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta)
-    if is_structured(rs):       # as `calib fit` asks it: do the values depend on it?
-        rs["refits"] = structure_check(lambda s: make_problem(build_model(s, prof), sc), model, rs["covariate"],
-                                       r.map.values, r.map.bic, {n: p.ci95 for n, p in r.params.items()},
-                                       seed=seed)
+    r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
+    # the refits `calib fit` asks before its verdict: nuisances, the structure, a missing effect
+    refit_checks(lambda s: make_problem(build_model(s, prof), sc), model, r, seed=seed)
     v = assess(r.to_json())
     lo, hi = r.params["pa.tau_s"].ci95
     t_lo, t_hi = reference_tau(values, man)

@@ -339,18 +339,20 @@ def _clean(o):
 
 def compare_models(scan: ScanData, models: dict, full: bool = True, seed: int = 0,
                    max_steps: int = 20000, progress: bool = False,
-                   noise: NoiseOptions | None = None) -> Comparison:
+                   noise: NoiseOptions | None = None, priors: dict | None = None) -> Comparison:
     """Fit each model (``{spec: Model}``) by MAP (and, if ``full``, by MCMC + PSIS-LOO).
 
     Models are warm-started from the earlier fits that share their parameters, so a model
     that extends another starts at that model's optimum and never fits worse than it.
-    ``noise``: the engine's noise options (default: AR(1) along tracks, Gaussian).
+    ``noise``: the engine's noise options (default: AR(1) along tracks, Gaussian);
+    ``priors``: prior overrides (fit.priors format), each applied to the models that have
+    the parameter.
     """
     from calib.progress import progress as bar
 
     fits: list[ModelFit] = []
     for spec, model in bar(list(models.items()), desc="compare", unit="model", disable=not progress):
-        problem = _problem(model, scan, noise)
+        problem = _problem(model, scan, noise, priors)
         f = fit_model(model, scan, spec, warm=fits, seed=seed, problem=problem)
         fits.append(f)
     if full:

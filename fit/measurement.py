@@ -74,12 +74,15 @@ def load_along_sd(widths_path) -> float | None:
 def scan_states(data) -> list[dict]:
     """Per scan of ``data`` (fit.data.FitData): name, widths path, calibration block or None,
     and the along-track sd of its stations' place (mm) or None."""
-    out = []
-    for sc in data.scans:
-        w = (getattr(sc, "source", None) or {}).get("widths")
-        out.append({"scan": sc.name, "widths": w, "calibration": load_calibration(w) if w else None,
-                    "along_sd_mm": load_along_sd(w) if w else None})
-    return out
+    return [scan_state(sc.name, (getattr(sc, "source", None) or {}).get("widths")) for sc in data.scans]
+
+
+def scan_state(scan: str, widths_path) -> dict:
+    """One entry of :func:`scan_states`: scan ``scan`` measured into ``widths_path`` (None:
+    widths from nowhere known)."""
+    w = widths_path
+    return {"scan": scan, "widths": w, "calibration": load_calibration(w) if w else None,
+            "along_sd_mm": load_along_sd(w) if w else None}
 
 
 def measured_offset(cal: dict) -> tuple[float, float] | None:
@@ -167,6 +170,18 @@ def auto_start(scan: str, cal: dict | None, light: bool = False,
     if cal is None or (cal.get("applied") and not (cal.get("offset_sd_mm") or 0.0) >= AUTO_SCAN_BIAS_SD_MM):
         return "pa" + tail, prior_overrides(state, shift_names)
     return "pa+scan_bias" + tail, prior_overrides(state, ["scan_bias.b0_mm", *shift_names])
+
+
+def priors_for(scan: str, widths_path) -> dict[str, dict]:
+    """The prior overrides `calib fit` gives scan ``scan``'s ``scan_bias.b0_mm`` and
+    ``view_shift`` from what `calib measure` wrote beside ``widths_path``
+    (:func:`prior_overrides`), for whichever model has them: `calib diagnose` and `calib
+    compare` fit with them too, so their tables rank the models `calib fit` would fit. A
+    phone scan's apparent widths diagnosed without them read reduced chi-square 90 for the
+    `pa+scan_bias+view_light` that `calib fit` fitted at 26: the offset's default prior,
+    0 +- 30 um, held it at -27 um where the reference said -48 +- 16."""
+    return prior_overrides([scan_state(scan, widths_path)],
+                           ["scan_bias.b0_mm", "view_shift.dx_mm", "view_shift.dy_mm"])
 
 
 def start_for(scan, widths_path) -> tuple[str, dict[str, dict]]:

@@ -152,3 +152,26 @@ def structure_check(make_problem, spec: str, covariate: str, map_values: dict, m
                  for st in NUISANCE_STARTS.get(e, [NUISANCE.get(e, {})])]
         out.append(max(tries, key=lambda r: r["delta_bic"]))
     return out
+
+
+def refit_checks(make_problem, spec: str, res, *, seed: int = 0, chi2_max: float | None = None,
+                 ask_missing: bool = True) -> None:
+    """The refits `calib fit` asks of one scan's fit ``res`` (fit.result.FitResult of
+    ``spec``, its ``residual_structure`` diagnosed already) before its verdict, written into
+    ``res.diagnostics``: the nuisances (:func:`nuisance_check`), what the residuals line up
+    with (:func:`structure_check`, when fit.trust.is_structured) and, for a fit between
+    MISSING_GATE and the misfit line ``chi2_max`` (fit.trust.CHI2_NU_MAX) when
+    ``ask_missing``, the library's dynamics it lacks (:func:`missing_check`).
+    ``make_problem(spec)`` builds the posterior of any model on the scan, with the priors
+    the fit had. One function so the benches judge what `calib fit` judges."""
+    from fit.trust import CHI2_NU_MAX, is_structured
+
+    chi2_max = CHI2_NU_MAX if chi2_max is None else chi2_max
+    vals, bic = res.map.values, res.map.bic
+    ci95 = {n: p.ci95 for n, p in res.params.items()}
+    res.diagnostics["nuisance"] = nuisance_check(make_problem, spec, vals, bic, ci95, seed=seed)
+    rs = res.diagnostics.get("residual_structure")
+    if rs is not None and is_structured(rs):
+        rs["refits"] = structure_check(make_problem, spec, rs["covariate"], vals, bic, ci95, seed=seed)
+    if ask_missing and MISSING_GATE < res.map.chi2_nu_bead <= chi2_max:
+        res.diagnostics["missing_effects"] = missing_check(make_problem, spec, vals, bic, ci95, seed=seed)

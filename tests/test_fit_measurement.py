@@ -97,10 +97,12 @@ def test_model_auto_starts_with_scan_bias_on_apparent_widths(tmp_path, monkeypat
     res, problem = run_fit(scan_with_summary(tmp_path, cal), "auto", map_only=True, progress=False,
                            priors=str(tmp_path / "p.toml"))
     assert seen["base"] == base and res.model == base
-    want = {"thermal.a"} | ({"scan_bias.b0_mm"} if base != "pa" else set())
+    # every model of the chain has the priors `calib fit` would give it, the base's or not
+    want = {"thermal.a"} | ({"scan_bias.b0_mm"} if cal is not None else set())
     assert set(seen["priors"]) == want
+    if cal is not None:
+        assert seen["priors"]["scan_bias.b0_mm"] == measurement.b0_prior(cal)
     if base != "pa":
-        assert seen["priors"]["scan_bias.b0_mm"]["sd"] == measurement.UNCALIBRATED_SD_MM
         assert _prior(problem, "scan_bias.b0_mm").sd == measurement.UNCALIBRATED_SD_MM
     # a prior of an effect the search did not choose does not stop the fit of the one it did
     assert "thermal.a" not in problem.param_names
@@ -194,3 +196,40 @@ def test_a_loose_along_track_place_gives_view_shift_its_prior_and_auto_starts_wi
     assert measurement.auto_start("s", CAL) == ("pa", {})
     (tmp_path / "widths.summary.json").unlink()
     assert measurement.load_along_sd(pairs[0][0]) is None
+
+
+def test_diagnose_and_compare_fit_with_the_priors_calib_fit_uses(tmp_path, capsys):
+    """`calib diagnose` and `calib compare` read the summary beside the widths as `calib fit`
+    does: a phone scan's apparent widths diagnosed with scan_bias's default prior (0 +-
+    5 um) read reduced chi-square 90 where `calib fit` read 26 for the same model, and the
+    candidate table ranked effects against a base `calib fit` never fits. The same model
+    on the same widths now gives the same MAP from all three; a typo in --priors is one
+    line, exit 2."""
+    from calib.cli import main
+
+    cal = dict(UNCAL, offset_mm=-0.02, offset_sd_mm=0.012, prior_ok=True)   # measured, not applied
+    (widths, man), = scan_with_summary(tmp_path, cal)
+    spec = "pa+scan_bias"
+    m, _ = run_fit([(widths, man)], spec, map_only=True, progress=False)
+    assert main(["compare", widths, "--manifest", man, "--models", spec, "pa", "--fast",
+                 "-o", str(tmp_path / "c.json")]) == 0
+    row = next(f for f in json.loads((tmp_path / "c.json").read_text())["models"] if f["model"] == spec)
+    assert row["params"]["scan_bias.b0_mm"] == pytest.approx(m.values["scan_bias.b0_mm"], abs=2e-4)
+    assert main(["diagnose", widths, "--manifest", man, "--model", spec, "--candidates", "thermal",
+                 "-o", str(tmp_path / "d.json")]) == 0
+    d = json.loads((tmp_path / "d.json").read_text())
+    assert d["params"]["scan_bias.b0_mm"] == pytest.approx(m.values["scan_bias.b0_mm"], abs=2e-4)
+    assert d["chi2_nu"] == pytest.approx(m.chi2_nu, rel=0.02)
+    # the prior pulls: without the summary the offset goes elsewhere
+    (tmp_path / "widths.summary.json").unlink()
+    assert main(["diagnose", widths, "--manifest", man, "--model", spec, "--candidates", "thermal",
+                 "-o", str(tmp_path / "d0.json")]) == 0
+    d0 = json.loads((tmp_path / "d0.json").read_text())
+    assert abs(d0["params"]["scan_bias.b0_mm"] - d["params"]["scan_bias.b0_mm"]) > 1e-3
+    capsys.readouterr()
+    (tmp_path / "q.toml").write_text('["scan_bias.b00"]\nprior = "normal"\nmu = 0.0\nsd = 0.01\n')
+    for verb in (["diagnose", widths, "--manifest", man, "--model", spec],
+                 ["compare", widths, "--manifest", man, "--models", spec, "--fast"]):
+        assert main([*verb, "--priors", str(tmp_path / "q.toml")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "scan_bias.b00" in err[0]

@@ -23,6 +23,8 @@ def add_parser(subparsers):
                    help="models to compare, e.g. pa pa+thermal pa+thermal+backpressure")
     p.add_argument("--effects", metavar="FILE.py",
                    help="a Python file with your own Effect classes, usable in --models")
+    p.add_argument("--priors", help="TOML file overriding parameter priors, applied to each model that "
+                                    "has the parameter (see fit/priors.py)")
     p.add_argument("--fast", action="store_true", help="MAP fits only (no emcee, no LOO)")
     p.add_argument("--steps", type=integer(1), default=20000,
                    help="cap on emcee steps per walker (the run stops earlier once it has "
@@ -46,6 +48,30 @@ def load_inputs(widths, manifest_path, effects=None):
     return manifest, table, extra
 
 
+def scan_priors(widths, specs, priors_file=None, extra=(), prog: str = "calib") -> dict[str, dict]:
+    """Prior overrides for every model fitted to the widths CSV ``widths``: what `calib
+    measure` wrote beside it (fit.measurement.priors_for: the width offset's prior for
+    ``scan_bias``, the stations' place for ``view_shift``), as `calib fit` applies it, then
+    the user's ``priors_file`` over it. `calib fit`'s notes on those widths for the models
+    ``specs`` (apparent widths and no ``scan_bias``...; none when empty) go to stderr. A name no effect
+    (library or ``extra``) has is a one-line error: a search over models applies each prior
+    to the models that have it, so a typo would apply to none, silently."""
+    from fit.effects import REGISTRY
+    from fit.measurement import notes, priors_for, scan_state
+    from fit.priors import load_priors_file
+
+    user = load_priors_file(priors_file) if priors_file else {}
+    known = {f"{c.name}.{p.name}" for c in [*REGISTRY.values(), *extra] for p in c.params}
+    bad = [k for k in user if k.split("@")[0] not in known and not k.startswith("noise.")]
+    if bad:
+        raise UserError(f"priors file names parameter {bad[0]!r}, which no effect has")
+    parts = [set(s.split("+")) for s in specs]
+    for n in notes([scan_state("widths", widths)], all("scan_bias" in p for p in parts),
+                   all("view_shift" in p for p in parts)) if parts else ():
+        print(f"{prog}: {n}", file=sys.stderr)
+    return {**priors_for("widths", widths), **user}
+
+
 def run(args) -> int:
     from calib.fileio import atomic_write_text
     from fit.compare import compare_models, observe
@@ -61,7 +87,8 @@ def run(args) -> int:
         models[spec] = build_model(spec, manifest.printer, extra_effects=extra)
     obs = observe(manifest, table)
     comp = compare_models(obs, models, full=not args.fast, seed=args.seed, max_steps=args.steps,
-                          progress=True)
+                          progress=True, priors=scan_priors(args.widths, list(models), args.priors, extra,
+                                                             "calib compare"))
     print(format_table(comp.rows()))
     doc = comp.to_json()
     doc.update({"widths": str(args.widths), "manifest": str(args.manifest),

@@ -20,6 +20,8 @@ def add_parser(subparsers):
     p.add_argument("--model", required=True, metavar="SPEC", help="the model to diagnose, e.g. pa")
     p.add_argument("--effects", metavar="FILE.py",
                    help="a Python file with your own Effect classes; they become candidates too")
+    p.add_argument("--priors", help="TOML file overriding parameter priors, applied to the model and to "
+                                    "each candidate that has the parameter (see fit/priors.py)")
     p.add_argument("--candidates", metavar="A,B,...",
                    help="try only these library effects (default: every one not in the model); "
                         "effects from --effects are always tried")
@@ -34,7 +36,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from calib.commands.compare import load_inputs
+    from calib.commands.compare import load_inputs, scan_priors
     from calib.fileio import atomic_write_text
     from calib.errors import UserError
     from fit.compare import observe
@@ -47,10 +49,13 @@ def run(args) -> int:
     build_model(args.model, manifest.printer, extra_effects=extra)  # bad spec -> one line
     library = library_candidates(args.candidates)
     obs = observe(manifest, table)
+    # the priors `calib fit` would fit with: the table then ranks the models it would fit
+    priors = scan_priors(args.widths, [args.model], args.priors, extra, "calib diagnose")
     eff = f" --effects {args.effects}" if args.effects else ""
+    eff += f" --priors {args.priors}" if args.priors else ""
     d = diagnose(obs, args.model, lambda s: build_model(s, manifest.printer, extra_effects=extra),
                  library, [c.name for c in extra], confirm_top=args.confirm,
-                 seed=args.seed, progress=True,
+                 seed=args.seed, progress=True, priors=priors,
                  command_prefix=f"calib fit {args.widths} --manifest {args.manifest}", effects_arg=eff)
     doc = d.to_json()
     doc.update({"widths": str(args.widths), "manifest": str(args.manifest),

@@ -190,25 +190,16 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
     flows = tested_flow_range(problem)
     if flows:
         res.derived["tested_flow_mm3_s"] = flows
-    from fit.trust import assess, is_structured, residual_structure
+    from fit.trust import assess, residual_structure
 
-    rs = res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
+    res.diagnostics["residual_structure"] = residual_structure(problem, res.map.theta, seed=seed)
     if len(data.scans) == 1:    # a joint fit's per-scan parameters make the refit ambiguous; skipped
-        from fit.nuisance import MISSING_GATE, missing_check, nuisance_check, structure_check
+        from fit.nuisance import refit_checks
 
         def extended(spec):
             return make_problem(spec, data, noise, {**cal, **user} or None, extra)
-        ci95 = {n: p.ci95 for n, p in res.params.items()}
-        res.diagnostics["nuisance"] = nuisance_check(extended, model_spec, res.map.values, res.map.bic,
-                                                     ci95, seed=seed)
-        if is_structured(rs):
-            rs["refits"] = structure_check(extended, model_spec, rs["covariate"], res.map.values,
-                                           res.map.bic, ci95, seed=seed)
-        if auto is None and MISSING_GATE < res.map.chi2_nu_bead <= chi2_max:
-            # --model auto's chain has already asked the library's effects; a misfit is
-            # refused already, and its advice is `calib diagnose`
-            res.diagnostics["missing_effects"] = missing_check(extended, model_spec, res.map.values,
-                                                               res.map.bic, ci95, seed=seed)
+        # --model auto's chain has already asked the library's effects
+        refit_checks(extended, model_spec, res, seed=seed, chi2_max=chi2_max, ask_missing=auto is None)
     from fit.offset_envelope import widen_offset
 
     # the calibration's doubt of the widths' offset, which a model without scan_bias takes as 0
@@ -281,12 +272,12 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     with ``+view_light`` when the widths carry the flank's angle to the light over its bands,
     and with ``+view_shift`` when the pose places the stations along their tracks loosely;
     ``priors``: the user's priors file, applied to every model that has the parameter."""
+    from calib.commands.compare import scan_priors
     from fit import measurement
     from fit.auto import auto_model
     from fit.compare import observe
     from fit.effects import REGISTRY
     from fit.model import build_model
-    from fit.priors import load_priors_file
     from fit.trust import CHI2_NU_MAX
     from measure.table import WidthTable
     from patterns.manifest import Manifest
@@ -299,14 +290,10 @@ def choose_model(pairs, effects_file, extra, *, seed=0, progress=True, chi2_max=
     scan = observe(manifest, WidthTable.load(widths))
     if not missing:
         scan.missing_idx = scan.missing_idx[:0]
-    base, pri = measurement.start_for(scan, widths)
-    user = load_priors_file(priors) if priors else {}
-    # the search applies a prior to the models that have it; a name no effect has is a typo
-    known = {f"{c.name}.{p.name}" for c in [*REGISTRY.values(), *extra] for p in c.params}
-    bad = [k for k in user if k.split("@")[0] not in known and not k.startswith("noise.")]
-    if bad:
-        raise UserError(f"priors file names parameter {bad[0]!r}, which no effect has")
-    pri.update(user)
+    base = measurement.start_for(scan, widths)[0]
+    # every model of the chain with the priors `calib fit` gives the chosen one: a chain
+    # from `pa` that adds scan_bias fits it with the calibration's prior, not the default
+    pri = scan_priors(widths, (), priors, extra)
     res = auto_model(scan, lambda s: build_model(s, manifest.printer, extra_effects=extra),
                      list(REGISTRY), [c.name for c in extra], seed=seed, progress=progress,
                      chi2_max=CHI2_NU_MAX if chi2_max is None else chi2_max, base_spec=base,
