@@ -113,8 +113,13 @@ def run_wizard(inp=sys.stdin, out=sys.stdout, port: str | None = None, baud: int
     r = _Runner(Path("."), out)
     r.say("calib wizard: print a test, photograph it, get your extruder's constants.\n")
     names = sorted(shipped_profiles())
-    printer = ask.ask(f"printer profile (one of {', '.join(names)}, or a path to your TOML)", names[0])
-    profile = load_profile(printer)
+    while True:
+        printer = ask.ask(f"printer profile (one of {', '.join(names)}, or a path to your TOML)", names[0])
+        try:
+            profile = load_profile(printer)
+            break
+        except UserError as exc:       # a typo or a broken TOML must not end the session
+            r.say(f"   {exc}")
     folder = Path(ask.ask("folder for the files", "calib-session"))
     folder.mkdir(parents=True, exist_ok=True)
     sess = Session(folder)

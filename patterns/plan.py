@@ -330,8 +330,12 @@ def select_tracks(manifest: Manifest, ids: set[int] | None = None,
                 f"{len(bases)} tracks are the lines")
         notes.append(f"{what} ruler ticks stand on (>= {TICK_FAMILY} ticks touch each), not test lines: "
                      f"{_id_ranges(bases)}; --tracks to override")
-    if not manifest.test_tracks():
-        notes.append("no test track left: check --tracks / --z-range-mm")
+    if ids is not None:
+        have = {t.id for t in manifest.tracks}
+        unknown = sorted(i for i in ids if i not in have)
+        if unknown:
+            notes.append(f"--tracks names {'ids' if len(unknown) > 1 else 'id'} no track has: "
+                         f"{_id_ranges(unknown)} (the G-code's tracks are {_id_ranges(sorted(have)) or 'none'})")
     return notes
 
 

@@ -30,10 +30,15 @@ def test_wizard_writes_the_pattern_then_stops_clearly_when_answers_run_out(tmp_p
     assert "path to the photo or scan" in text
 
 
-def test_wizard_rejects_unknown_printer(tmp_path, monkeypatch):
+def test_wizard_asks_again_after_an_unknown_printer(tmp_path, monkeypatch):
+    """A typo in the printer's name said why and ended the session; it is asked again."""
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(UserError):
-        run_wizard(inp=io.StringIO("no_such_printer\n"), out=io.StringIO())
+    out = io.StringIO()
+    with pytest.raises(UserError, match="ran out of answers"):
+        run_wizard(inp=io.StringIO("no_such_printer\ndirect_drive\nsession\n"), out=out)
+    text = out.getvalue()
+    assert "no_such_printer" in text and text.count("? printer profile") == 2
+    assert "? folder for the files" in text
 
 
 def test_wizard_with_a_port_asks_before_heating_and_sends_nothing_on_no(tmp_path, monkeypatch):

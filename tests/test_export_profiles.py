@@ -324,3 +324,19 @@ def test_an_extruder_stepper_section_is_named_as_klipper_names_it(tmp_path, fit_
         assert main(["export", fit_json, "--to", "klipper", "--section", bad]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "--section" in err[0]
+
+
+def test_tool_and_section_go_only_where_the_target_chooses_extruders_that_way(fit_json, capsys):
+    """--tool was ignored by Klipper's targets (a fuzzed `--tool 99 --to klipper` printed
+    [extruder]) and --section by the others: either would set extruder 0 where the user
+    asked for another. Now one line naming the option the target does take."""
+    for argv, hint in ((["--to", "klipper", "--tool", "1"], "--section extruder1"),
+                       (["--to", "klipper-gcode", "--tool", "2"], "--section extruder2"),
+                       (["--to", "kisslicer", "--tool", "1"], "drop --tool"),
+                       (["--to", "marlin", "--section", "extruder1"], "--tool N"),
+                       (["--to", "spoolman", "--section", "extruder1"], "drop --section")):
+        assert main(["export", fit_json, *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and hint in err[0], (argv, err)
+    assert main(["export", fit_json, "--to", "marlin", "--tool", "1"]) == 0
+    assert "T1" in capsys.readouterr().out

@@ -203,6 +203,16 @@ def test_plan_picks_the_test_tracks(tmp_path, capsys):
     assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--z-range-mm", "0.3,0.5"]) == 0
     assert [t.id for t in Manifest.load(out).tracks if t.kind == "test"] == [4]
     assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks", "x"]) == 2
+    # a selection of no track is no manifest: one line, exit 2, nothing written
+    capsys.readouterr()
+    out.unlink()
+    for sel in (["--tracks", "-1"], ["--tracks", "99"], ["--z-range-mm", "5,6"]):
+        assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), *sel]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "no test track" in err[0] and sel[0] in err[0] and not out.exists()
+    # an id no track has, beside ones that exist, is said
+    assert main(["plan", str(src), "--printer", "ender3", "-o", str(out), "--tracks", "4,99"]) == 0
+    assert "--tracks names id no track has: 99" in capsys.readouterr().err
 
 
 def test_plan_picks_test_tracks_by_their_gcode_comments(tmp_path, capsys):

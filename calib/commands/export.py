@@ -314,6 +314,24 @@ def klipper_name(section: str) -> str:
     return section.split()[-1]
 
 
+#: the targets that set one extruder among several by --tool (the others: by --section, or none)
+TOOL_TARGETS = ("marlin", "rrf", "orca", "orca-adaptive", "prusa")
+
+
+def check_targeting(target: str, tool: int, section: str) -> None:
+    """A UserError where ``--tool`` or ``--section`` names an extruder the target does not
+    choose that way: ignored, the value would go to extruder 0 (a fuzzed ``--tool 99 --to
+    klipper`` printed [extruder])."""
+    klipper = target.startswith(("klipper", "kalico"))
+    if tool != 0 and target not in TOOL_TARGETS:
+        how = (f"Klipper chooses the extruder by section: --section extruder{tool}" if klipper else
+               f"--to {target} sets one value for the filament or spool; drop --tool")
+        raise UserError(f"--tool {tool}: --tool chooses the extruder for {', '.join(TOOL_TARGETS)}; {how}")
+    if section != "extruder" and not klipper:
+        how = (f"choose the extruder with --tool N" if target in TOOL_TARGETS else "drop --section")
+        raise UserError(f"--section {section!r}: --section names a Klipper config section; for --to {target} {how}")
+
+
 def snippet(doc, target: str, section: str = "extruder", tool: int = 0) -> str:
     if target == "orca-adaptive":
         return orca_adaptive_table(doc)[0]
@@ -577,6 +595,7 @@ def run(args) -> int:
         raise UserError(f"--section {args.section!r}: Klipper keeps pressure advance in [extruder], "
                         "[extruder1], ... or [extruder_stepper NAME]; give the name without brackets")
     args.section = " ".join(args.section.split())
+    check_targeting(args.to, args.tool, args.section)
     check_trust(doc, args.force)
     if args.on and args.to not in MATCH_TARGETS:
         raise UserError(f"--on chooses a pressure-advance value; --to {args.to} has none "

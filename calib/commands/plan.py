@@ -86,6 +86,18 @@ def run(args) -> int:
             raise UserError(f"--tracks-comment {args.tracks_comment!r} matches no track's G-code comments")
         ids = hit if ids is None else ids & hit
     notes = select_tracks(man, ids, zr, auto_exclude=not (args.keep_all or man.pattern.get("labelled")))
+    if not man.test_tracks():
+        # a manifest without a test track can be neither measured nor fitted: say so now,
+        # not two commands later
+        chosen = [f for f, v in (("--tracks", args.tracks), ("--tracks-comment", args.tracks_comment),
+                                 ("--z-range-mm", args.z_range_mm)) if v]
+        why = (f"{' with '.join(chosen)} select{'s' if len(chosen) == 1 else ''} none of its "
+               f"{len(man.tracks)} tracks" if chosen else
+               f"each of its {len(man.tracks)} tracks was taken for a prime line, label, tick or loop"
+               if man.tracks else "it extrudes no track")
+        tail = next((n for n in notes if n.startswith("--tracks names")), None)
+        raise UserError(f"no test track in {src.name}: {why}" + (f"; {tail}" if tail else "")
+                        + "; `calib preview` shows the track ids, --keep-all keeps every track")
     man.pattern.setdefault("warnings", []).extend(notes)
     out = Path(args.output) if args.output else manifest_path_for(src)
     try:
