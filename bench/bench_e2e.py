@@ -222,11 +222,11 @@ def _one(job):
                          n_loo_draws=50)
             # the verdict `calib fit` would print (fit/trust.py): is a miss flagged?
             r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
-            refit_checks(problem, m, r, seed=seed)
             # the intervals `calib fit` reports: widened by the width calibration's doubt where
             # the model has no scan_bias, and to hold the short-wobble fit too
             widen_offset(pb, r, states, seed=seed)
             env = widen(pb, r, seed=seed)
+            refit_checks(problem, m, r, seed=seed)      # judged against those intervals
             # the scan's own scatter, as `calib fit` writes it for the verdict
             r.diagnostics["measurement"] = {"scatter": [{"scan": sc.name, **scatter(sc)}]}
             v = assess(r.to_json())

@@ -37,13 +37,14 @@ Problems
   ``spread``) is decisively in the data (Delta BIC >= 10) and moves a physical value
   outside its 95 % interval: the number is biased by what the model leaves out, though
   nothing else shows it (on realistic renders `pa` read tau 4 % high at chi2_nu_bead ~1).
-- ``missing effect``: a fit between a right model's reduced chi-square and the misfit
-  line (chi2_nu_bead > ``MISSING_GATE``, 1.5) is refitted with each extrusion-dynamics
-  effect of the library it lacks (fit/nuisance.py missing_check; not with `--model auto`,
-  whose chain asked them); one decisively in the data (Delta BIC >= 10) that moves a
-  pasted value outside its 95 % interval is a problem. `calib demo --camera phone` fitted
-  pa+scan_bias+view_light to a printer with thermal ooze and back-pressure at 1.94, no
-  residual structure beyond p 0.035: tau 1.156 [1.110, 1.212] s, trusted, truth 0.8.
+- ``missing effect``: a fit within the misfit line is refitted with each
+  extrusion-dynamics effect of the library it lacks (fit/nuisance.py missing_check; not
+  with `--model auto`, whose chain asked them); one decisively in the data (Delta BIC >=
+  10) that moves a pasted value outside its 95 % interval is a problem. `calib demo
+  --camera phone` fitted pa+scan_bias+view_light to a printer with thermal ooze and
+  back-pressure at 1.94, no residual structure beyond p 0.035: tau 1.156 [1.110, 1.212]
+  s, trusted, truth 0.8; `pa` on a back-pressure printer reads chi2_nu_bead ~1.03, as a
+  right model does, and tau 2.7x the truth.
 - ``at a bound``: the 95 % interval of a physical parameter reaches within
   ``BOUND_FRACTION`` (2 %) of the prior range (in log units for positive parameters) of
   a bound that is a range limit, not the "effect absent" value 0: the data want a value
