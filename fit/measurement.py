@@ -179,7 +179,7 @@ def priors_for(scan: str, widths_path) -> dict[str, dict]:
     compare` fit with them too, so their tables rank the models `calib fit` would fit. A
     phone scan's apparent widths diagnosed without them read reduced chi-square 90 for the
     `pa+scan_bias+view_light` that `calib fit` fitted at 26: the offset's default prior,
-    0 +- 30 um, held it at -27 um where the reference said -48 +- 16."""
+    0 +- 5 um, held it at -27 um where the reference said -48 +- 16."""
     return prior_overrides([scan_state(scan, widths_path)],
                            ["scan_bias.b0_mm", "view_shift.dx_mm", "view_shift.dy_mm"])
 

@@ -99,16 +99,16 @@ def refit_with(make_problem, spec: str, effect: str, start: dict, map_values: di
     return {"effect": effect, "model": ext, "delta_bic": float(map_bic - m.bic), "moved": moved}
 
 
-#: Every fit of one scan that passes the misfit line (refused already above it) is asked
-#: :func:`missing_check`, whatever its reduced chi-square: a missing effect's mark can hide
-#: in the noise model. Until session 56 only fits with chi2_nu_bead above 1.5 were asked
-#: (`calib demo --camera phone`: pa+scan_bias+view_light on a printer with thermal ooze and
-#: back-pressure, chi2_nu_bead 1.94, no residual structure beyond p 0.035: tau 1.156 [1.110,
-#: 1.212] s, "OK", for a truth of 0.8). On bench_trust's direct-drive spiral, `pa` fitted to
-#: a back-pressure printer read chi2_nu_bead 1.02-1.07, as the right models (0.95-1.03), and
-#: tau 0.115-0.121 s for 0.043; only the structure check (11-13 % on acceleration, near its
-#: line) refused them. Asked, back-pressure was 180-235 BIC better on all 4 and moved tau to
-#: 0.037-0.044; on the 8 right-model fits nothing (7-27 s a fit).
+# Every fit of one scan that passes the misfit line (refused already above it) is asked
+# :func:`missing_check`, whatever its reduced chi-square: a missing effect's mark can hide
+# in the noise model. Until session 56 only fits with chi2_nu_bead above 1.5 were asked
+# (`calib demo --camera phone`: pa+scan_bias+view_light on a printer with thermal ooze and
+# back-pressure, chi2_nu_bead 1.94, no residual structure beyond p 0.035: tau 1.156 [1.110,
+# 1.212] s, "OK", for a truth of 0.8). On bench_trust's direct-drive spiral, `pa` fitted to
+# a back-pressure printer read chi2_nu_bead 1.02-1.07, as the right models (0.95-1.03), and
+# tau 0.115-0.121 s for 0.043; only the structure check (11-13 % on acceleration, near its
+# line) refused them. Asked, back-pressure was 180-235 BIC better on all 4 and moved tau to
+# 0.037-0.044; on the 8 right-model fits nothing (7-27 s a fit).
 
 
 def missing_check(make_problem, spec: str, map_values: dict, map_bic: float, ci95: dict,
