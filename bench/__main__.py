@@ -17,6 +17,9 @@ from bench.common import Row, print_table
 
 
 def main(argv=None) -> int:
+    from calib.parallel import single_blas
+
+    single_blas()       # as the CLI runs: BLAS on one thread (calib/parallel.py)
     argv = sys.argv[1:] if argv is None else argv
     names = sorted(m.name for m in pkgutil.iter_modules(bench.__path__) if m.name.startswith("bench_"))
     if argv:

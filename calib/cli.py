@@ -67,6 +67,9 @@ def main(argv=None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    from calib.parallel import single_blas
+
+    single_blas()       # MAP fits 3-6x faster on 2 cores (calib/parallel.py)
     try:
         return int(args._run(args) or 0)
     except UserError as exc:
