@@ -226,10 +226,25 @@ def test_diagnose_and_compare_fit_with_the_priors_calib_fit_uses(tmp_path, capsy
                  "-o", str(tmp_path / "d0.json")]) == 0
     d0 = json.loads((tmp_path / "d0.json").read_text())
     assert abs(d0["params"]["scan_bias.b0_mm"] - d["params"]["scan_bias.b0_mm"]) > 1e-3
+    # `calib report --models` compares with them too
+    import fit.compare
+    seen = {}
+    real = fit.compare.compare_models
+
+    def spy(*a, priors=None, **k):
+        seen["priors"] = priors
+        return real(*a, priors=priors, **k)
+    (tmp_path / "widths.summary.json").write_text(json.dumps({"apparent_width": cal}))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fit.compare, "compare_models", spy)
+        assert main(["report", "--widths", widths, "--manifest", man, "--models", spec,
+                     "-o", str(tmp_path / "r.html")]) == 0
+    assert seen["priors"]["scan_bias.b0_mm"] == measurement.b0_prior(cal)
     capsys.readouterr()
     (tmp_path / "q.toml").write_text('["scan_bias.b00"]\nprior = "normal"\nmu = 0.0\nsd = 0.01\n')
     for verb in (["diagnose", widths, "--manifest", man, "--model", spec],
-                 ["compare", widths, "--manifest", man, "--models", spec, "--fast"]):
+                 ["compare", widths, "--manifest", man, "--models", spec, "--fast"],
+                 ["report", "--widths", widths, "--manifest", man, "--models", spec, "-o", str(tmp_path / "r.html")]):
         assert main([*verb, "--priors", str(tmp_path / "q.toml")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "scan_bias.b00" in err[0]

@@ -26,6 +26,8 @@ def add_parser(subparsers):
                    help="compare these models now (needs --widths and --manifest)")
     p.add_argument("--model", metavar="SPEC", help="diagnose this model now (needs --widths, --manifest)")
     p.add_argument("--effects", metavar="FILE.py", help="your own Effect classes")
+    p.add_argument("--priors", help="with --models/--model: TOML file overriding parameter priors, applied to "
+                                    "each model that has the parameter (see fit/priors.py)")
     p.add_argument("--candidates", metavar="A,B,...",
                    help="with --model: try only these library effects (default: every one not in the model)")
     p.add_argument("--full", action="store_true", help="full fits (emcee, PSIS-LOO, corner plots)")
@@ -66,7 +68,7 @@ def run(args) -> int:
     if (args.models or args.model) and not (args.widths and args.manifest):
         raise UserError("--models/--model need --widths and --manifest")
     if args.widths and args.manifest:
-        from calib.commands.compare import load_inputs
+        from calib.commands.compare import load_inputs, scan_priors
         from fit.compare import compare_models, observe
         from fit.model import build_model
         manifest, table, extra = load_inputs(args.widths, args.manifest, args.effects)
@@ -77,18 +79,22 @@ def run(args) -> int:
             specs = [r["model"] for r in compare_doc["models"]]
         if args.model and args.model not in specs:
             specs.insert(0, args.model)
+        # the priors `calib fit` fits with (the width reference's for scan_bias...), so the
+        # report's table shows the fits `calib fit` makes
+        priors = scan_priors(args.widths, specs, args.priors, extra, "calib report") if specs else None
         if specs:
             comparison = compare_models(obs, {s: build(s) for s in specs}, full=args.full,
-                                        progress=True)
+                                        progress=True, priors=priors)
             if compare_doc is None:
                 compare_doc = comparison.to_json()
         if args.model:
             from calib.commands.diagnose import library_candidates
             from fit.diagnose import diagnose
             eff = f" --effects {args.effects}" if args.effects else ""
+            eff += f" --priors {args.priors}" if args.priors else ""
             diagnosis = diagnose(obs, args.model, build, library_candidates(args.candidates), [c.name for c in extra],
                                  command_prefix=f"calib fit {args.widths} --manifest {args.manifest}",
-                                 effects_arg=eff)
+                                 effects_arg=eff, priors=priors)
             diagnose_doc = diagnosis.to_json()
     if not any(x is not None for x in (compare_doc, diagnose_doc, fit_doc, obs)) and not args.scan:
         raise UserError("nothing to report: give --widths/--manifest, --compare, --diagnose, --fit or --scan")
