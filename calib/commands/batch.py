@@ -62,7 +62,9 @@ def find_scans(folder) -> list[tuple[str, str, str]]:
 def fit_one(name, widths, manifest, model, priors=None, max_steps=20000, seed=0) -> dict:
     """Fit one scan, write NAME.fit.json next to it, return its summary row."""
     from calib.commands.fit import run_fit
+    from calib.parallel import single_blas
 
+    single_blas()       # a Dask worker is no process of ours: BLAS on one thread there too
     row = {"scan": name, "model": model}
     try:
         res, _ = run_fit([(widths, manifest)], model, priors=priors, max_steps=max_steps,
