@@ -230,6 +230,8 @@ def test_plain_pa_fit_keeps_tau(tmp_path, capsys):
     cap = capsys.readouterr()
     assert cap.out == f"SET_PRESSURE_ADVANCE ADVANCE={tau:.4f} SMOOTH_TIME=0.040\n"
     assert "the fitted physics is linear PA" in cap.err and "no PA" in cap.err
+    # what the interval does not hold is said beside it, on stderr, never in the snippet
+    assert "not the doubt of its form" in cap.err
 
 
 def test_on_gcode_file_and_bad_gcode(tmp_path, capsys):
