@@ -32,7 +32,12 @@ Problems
   and one explains it decisively (Delta BIC >= 10) while none of those moves a value
   outside its 95 % interval (by more than half its width): then a caution (the values do not depend on it). On 12 MP
   phone renders at 35 deg the apparent width follows heading, x or y, and 13 of 24 fits
-  whose 90 % interval held tau were refused before.
+  whose 90 % interval held tau were refused before. A covariate of where the bead lies
+  or which way it runs (``PLACE_COVARIATES``) that no refit explains and that no refit
+  moves a value for is a caution too: the dynamics act through time and flow, and the
+  missing-effect check asks those. On bench_e2e's flatbed `pa` print with every
+  phenomenon (40 seeds, 2026-11-30) 5 right-model fits whose 90 % interval held tau were
+  refused for x, y or heading (10-22 %) with every bed and picture refit worse by BIC.
 - ``nuisance``: an effect every printed bead has and the model lacks (fit/nuisance.py:
   ``spread``) is decisively in the data (Delta BIC >= 10) and moves a physical value
   outside its 95 % interval: the number is biased by what the model leaves out, though
@@ -84,6 +89,11 @@ BOUND_FRACTION = 0.02
 MODE_DELTA_BIC = 10.0
 STRUCTURE_SCORE = 0.10
 STRUCTURE_P = 0.01
+#: Covariates of where a bead lies or which way it runs. The values pasted are the
+#: extruder's dynamics, which act through time and flow; a pattern over the bed that
+#: neither the bed's nor the picture's effects explain and that moves no value when they
+#: are added is a caution, not a refusal (module docstring, "residual structure").
+PLACE_COVARIATES = ("x_mm", "y_mm", "r_mm", "heading_rad")
 PARETO_K_BAD = 0.7
 PARETO_K_SHARE = 0.01
 #: How far (mm) the width offset that the model infers from uncalibrated widths can be
@@ -197,6 +207,14 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
         cautions.append(f"{what}, and {names} explains it without moving any value outside its 95 % "
                         f"interval: the values do not depend on it (on a tilted photo the apparent "
                         f"width follows heading and position)")
+    elif structured and rs.get("covariate") in PLACE_COVARIATES and rs.get("refits") and \
+            not any(r.get("moved") for r in rs["refits"]):
+        structured = False
+        best = max(rs["refits"], key=lambda r: r.get("delta_bic", -math.inf))
+        cautions.append(f"{what}; neither the bed's nor the picture's effects explain it (best "
+                        f"`{best['effect']}`, BIC {best['delta_bic']:.0f}) and none of them moves a value "
+                        f"outside its 95 % interval: a pattern of the picture or the plate the library has "
+                        f"no form for; look at the residual plot (--plots), or scan again evenly lit")
     elif structured:
         moved = "; ".join(f"`{r['model']}` moves " + ", ".join(
             f"{n} from {a:.4g} to {b:.4g}" for n, (a, b) in r["moved"].items()) for r in moving)
