@@ -211,8 +211,10 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
             not any(r.get("moved") for r in rs["refits"]):
         structured = False
         best = max(rs["refits"], key=lambda r: r.get("delta_bic", -math.inf))
-        cautions.append(f"{what}; neither the bed's nor the picture's effects explain it (best "
-                        f"`{best['effect']}`, BIC {best['delta_bic']:.0f}) and none of them moves a value "
+        d = float(best.get("delta_bic", math.nan))
+        cautions.append(f"{what}; none of the bed's, the heading's or the picture's effects refitted for it explains it (the closest, "
+                        f"`{best['effect']}`, is {abs(d):.0f} BIC {'better' if d > 0 else 'worse'}) and none "
+                        f"of them moves a value "
                         f"outside its 95 % interval: a pattern of the picture or the plate the library has "
                         f"no form for; look at the residual plot (--plots), or scan again evenly lit")
     elif structured:
