@@ -191,6 +191,7 @@ def _one(job):
     from fit.measurement import prior_overrides, scatter
     from fit.noise_envelope import widen
     from fit.offset_envelope import widen_offset
+    from fit.sandwich_envelope import widen_sandwich
     from fit.trust import assess, residual_structure
     from patterns.profile import load_profile
 
@@ -226,6 +227,7 @@ def _one(job):
             # the model has no scan_bias, and to hold the short-wobble fit too
             widen_offset(pb, r, states, seed=seed)
             env = widen(pb, r, seed=seed)
+            widen_sandwich(pb, r, seed=seed)
             refit_checks(problem, m, r, seed=seed)      # judged against those intervals
             # the scan's own scatter, as `calib fit` writes it for the verdict
             r.diagnostics["measurement"] = {"scatter": [{"scan": sc.name, **scatter(sc)}]}

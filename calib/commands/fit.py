@@ -201,6 +201,11 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         from fit.noise_envelope import widen
 
         widen(problem, res, seed=seed, derive=derive)
+    from fit.sandwich_envelope import widen_sandwich
+
+    # the residuals' own scatter at the scale the values are read at, where the noise
+    # model's correlations are not theirs (measured widths smooth the bead's short wander)
+    widen_sandwich(problem, res, seed=seed, derive=derive)
     if len(data.scans) == 1:    # a joint fit's per-scan parameters make the refit ambiguous; skipped
         from fit.nuisance import refit_checks
 
@@ -371,9 +376,11 @@ def summary_text(res) -> str:
     from fit.noise_envelope import envelope_line
 
     from fit.offset_envelope import offset_line
+    from fit.sandwich_envelope import sandwich_line
 
     for env in (offset_line(res.diagnostics.get("offset_envelope")),
-                envelope_line(res.diagnostics.get("noise_envelope"))):
+                envelope_line(res.diagnostics.get("noise_envelope")),
+                sandwich_line(res.diagnostics.get("sandwich"))):
         if env:
             lines.append(env)
     fw = res.derived.get("firmware")
