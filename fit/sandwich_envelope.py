@@ -162,6 +162,25 @@ def widen_sandwich(problem, result, *, seed: int = 0, derive=None) -> dict:
     return info
 
 
+def widen_map_sandwich(problem, map_result) -> dict:
+    """The Laplace form of :func:`widen_sandwich` for a MAP fit (fit.result.MapResult of
+    ``problem``): its covariance becomes D C D, D the diagonal of max(1, ratio) (capped at
+    MAX_RATIO; 1 for noise parameters), in place; the correlations stay. Returns {"applied",
+    "lags", "ratio", "sd_before": {name: sd}}."""
+    ratios = sandwich_ratios(problem, map_result.theta)
+    n = sum(len(sc.order) for sc in problem.scans)
+    info = {"applied": False, "lags": newey_west_lags(n), "ratio": ratios, "sd_before": {}}
+    C = np.asarray(map_result.cov, dtype=float)
+    d = np.array([min(max(ratios.get(p, 1.0), 1.0), MAX_RATIO) for p in problem.param_names])
+    if C.shape != (len(d), len(d)) or not np.any(d > 1.0):
+        return info
+    info["applied"] = True
+    info["sd_before"] = {p: float(math.sqrt(max(C[i, i], 0.0))) for i, p in enumerate(problem.param_names)
+                         if d[i] > 1.0}
+    map_result.cov = C * np.outer(d, d)
+    return info
+
+
 def sandwich_line(info: dict | None) -> str | None:
     """One line for `calib fit`: which intervals the residuals' own scatter widened (pa.*
     first; at most three), or None."""

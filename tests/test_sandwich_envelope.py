@@ -123,3 +123,20 @@ def test_the_widening_stops_at_its_cap(monkeypatch):
     w1 = res.params["flow.w_mm"].ci95[1] - res.params["flow.w_mm"].ci95[0]
     assert w1 == pytest.approx(1.2 * w0, rel=0.03)
     assert MAX_RATIO == 3.0
+
+
+def test_a_map_fit_carries_the_ratio_in_its_covariance():
+    """`calib fit --map-only`: the Laplace sd grows by the ratio, the noise parameters' stay."""
+    from fit.sandwich_envelope import widen_map_sandwich
+
+    pb = _white(_scan(0.6, seed=7))
+    m = fit_map(pb)
+    C = np.array(m.cov, dtype=float)
+    info = widen_map_sandwich(pb, m)
+    i = pb.param_names.index("flow.w_mm")
+    r = info["ratio"]["flow.w_mm"]
+    assert info["applied"] and r > 1.5
+    assert math.sqrt(m.cov[i, i]) == pytest.approx(r * math.sqrt(C[i, i]), rel=1e-9)
+    for j, n in enumerate(pb.param_names):
+        if n != "flow.w_mm":
+            assert m.cov[j, j] == C[j, j]
