@@ -71,7 +71,11 @@ def test_apparent_widths_without_scan_bias_are_said_and_a_caution(tmp_path, caps
     pairs = scan_with_summary(tmp_path, UNCAL)
     run_fit(pairs, "pa", map_only=True, progress=False)
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "widths are apparent widths" in err[0] and "add scan_bias" in err[0]
+    # said once; the only other line is the sandwich's: the widths' uncalibrated offset,
+    # which `pa` lacks, leaves the residuals scattering more than its noise model says
+    said = [e for e in err if "widths are apparent widths" in e]
+    assert len(said) == 1 and "add scan_bias" in said[0]
+    assert all(e in said or "sandwich estimate" in e for e in err)
     notes = measurement.notes([{"scan": "widths", "calibration": UNCAL}], has_scan_bias=False)
     doc = {"converged": True, "information": {"chi2_nu": 1.0, "n_obs": 100}, "params": {}, "priors": {},
            "diagnostics": {"measurement": {"notes": notes}}}
