@@ -122,6 +122,7 @@ def test_the_widening_stops_at_its_cap(monkeypatch):
     assert info["ratio"]["flow.w_mm"] > 1.5
     w1 = res.params["flow.w_mm"].ci95[1] - res.params["flow.w_mm"].ci95[0]
     assert w1 == pytest.approx(1.2 * w0, rel=0.03)
+    assert "(x1.20, the cap; the residuals ask x" in se.sandwich_line(info)
     assert MAX_RATIO == 3.0
 
 

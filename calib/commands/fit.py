@@ -158,12 +158,13 @@ def run_fit(pairs, model_spec: str, *, priors=None, effects=None, student_nu=Non
         info = widen_map_offset(problem, m, states)
         if info:
             print(f"calib fit: width calibration: {doubt_text(info)}; the sds carry it", file=sys.stderr)
-        from fit.sandwich_envelope import widen_map_sandwich
+        from fit.sandwich_envelope import MAX_RATIO, widen_map_sandwich
 
         sw = widen_map_sandwich(problem, m)
         if sw["applied"]:
             print("calib fit: the residuals scatter more than the noise model says (sandwich estimate); "
-                  "the sds carry it: " + ", ".join(f"{p} x{sw['ratio'][p]:.2f}" for p in sw["sd_before"]),
+                  "the sds carry it: " + ", ".join(f"{p} x{min(sw['ratio'][p], MAX_RATIO):.2f}"
+                                                   for p in sw["sd_before"]),
                   file=sys.stderr)
         return m, problem
     if m.chi2_nu_bead > chi2_max:
