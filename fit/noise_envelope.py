@@ -81,6 +81,22 @@ def _hull(a, b) -> list:
     return [float(min(a[0], b[0])), float(max(a[1], b[1]))]
 
 
+def hull_draws(result, draws, names) -> dict:
+    """Widen each of ``names`` (parameters of ``result``, fit.result.FitResult) in place: its
+    68/90/95 % interval becomes the hull with the same quantiles of ``draws`` (rows laid out
+    as ``result.param_names``); the median stays. Returns {name: {"ci95_posterior", "ci95"}}
+    for those whose 95 % interval grew."""
+    grew = {}
+    for n in names:
+        p = result.params[n]
+        q = np.quantile(draws[:, result.param_names.index(n)], [0.16, 0.84, 0.05, 0.95, 0.025, 0.975])
+        new = {lvl: _hull(getattr(p, lvl), q[2 * i:2 * i + 2]) for i, lvl in enumerate(_LEVELS)}
+        if new["ci95"] != [float(v) for v in p.ci95]:
+            grew[n] = {"ci95_posterior": [float(v) for v in p.ci95], "ci95": new["ci95"]}
+        result.params[n] = replace(p, **{k: tuple(v) for k, v in new.items()})
+    return grew
+
+
 def union_derived(post: dict, alt: dict) -> dict:
     """``post`` (fit.derived.derived_values of the posterior) with every interval replaced by
     its hull with ``alt``'s (the same values from the other fit's draws); medians, configs and

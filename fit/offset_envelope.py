@@ -65,13 +65,12 @@ only warning (MAP fits; the structure check not run).
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
 from fit.likelihood import is_noise
 from fit.result import envelope_rows
-from fit.noise_envelope import _LEVELS, _hull, union_derived
+from fit.noise_envelope import hull_draws, union_derived
 
 #: the parameter named for the widths' common offset (a model with it carries the doubt)
 OFFSET_PARAM = "scan_bias.b0_mm"
@@ -172,14 +171,8 @@ def widen_offset(problem, result, states, *, seed: int = 0, derive=None) -> dict
         # beyond a bound the model has no value; the trust verdict judges bounds by the
         # posterior's own interval (fit/trust.py)
         draws[:, col] = np.clip(x, lo[col], hi[col])
-    for n, p in list(result.params.items()):
-        if is_noise(n) or n not in result.param_names:
-            continue
-        q = np.quantile(draws[:, result.param_names.index(n)], [0.16, 0.84, 0.05, 0.95, 0.025, 0.975])
-        new = {lvl: _hull(getattr(p, lvl), q[2 * i:2 * i + 2]) for i, lvl in enumerate(_LEVELS)}
-        if new["ci95"] != [float(v) for v in p.ci95]:
-            info["widened"][n] = {"ci95_posterior": [float(v) for v in p.ci95], "ci95": new["ci95"]}
-        result.params[n] = replace(p, **{k: tuple(v) for k, v in new.items()})
+    info["widened"] = hull_draws(result, draws, [n for n in result.params
+                                                 if not is_noise(n) and n in result.param_names])
     if derive is not None and result.derived:
         result.derived = union_derived(result.derived, derive(draws))
     result.envelope_samples["offset"] = envelope_rows(draws, seed)

@@ -55,12 +55,10 @@ beside a scan's valid stations). Between scans of a joint fit the scores are ind
 from __future__ import annotations
 
 import math
-from dataclasses import replace
-
 import numpy as np
 
 from fit.likelihood import is_noise, whiten
-from fit.noise_envelope import _LEVELS, _hull, union_derived
+from fit.noise_envelope import hull_draws, union_derived
 from fit.result import envelope_rows
 
 #: a ratio above this is a noise model too far from the residuals for a linear correction
@@ -158,14 +156,7 @@ def widen_sandwich(problem, result, *, seed: int = 0, derive=None) -> dict:
         else:
             x = med + q * (x - med)
         draws[:, col] = np.clip(x, lo[col], hi[col])
-    for p, par in list(result.params.items()):
-        if p not in grow:
-            continue
-        qs = np.quantile(draws[:, result.param_names.index(p)], [0.16, 0.84, 0.05, 0.95, 0.025, 0.975])
-        new = {lvl: _hull(getattr(par, lvl), qs[2 * i:2 * i + 2]) for i, lvl in enumerate(_LEVELS)}
-        if new["ci95"] != [float(v) for v in par.ci95]:
-            info["widened"][p] = {"ci95_posterior": [float(v) for v in par.ci95], "ci95": new["ci95"]}
-        result.params[p] = replace(par, **{k: tuple(v) for k, v in new.items()})
+    info["widened"] = hull_draws(result, draws, [p for p in result.params if p in grow])
     if derive is not None and result.derived:
         result.derived = union_derived(result.derived, derive(draws))
     result.envelope_samples["sandwich"] = envelope_rows(draws, seed)
