@@ -3,8 +3,9 @@ and leave the right ones alone?
 
 Data: the direct-drive spiral-step test track on the virtual printer (bench_fit.make_data),
 noise reported honestly (width_sd 0.01 mm, 0.004 mm more unreported, AR(1) 1 mm: a
-well-specified model then has chi2_nu ~1.2). Cases, ``SEEDS`` seeds each, full fits
-(MAP with the global search, emcee to convergence):
+well-specified model then has chi2_nu ~1.2). Cases, ``SEEDS`` seeds each, full fits as
+`calib fit` runs them (MAP with the global search, emcee to convergence, the intervals
+widened by the noise and sandwich envelopes, the refit checks, the verdict):
 
 - well-specified: truth pa, model pa; truth pa+thermal, model pa+thermal;
 - misspecified: model pa on truths pa+thermal (slow ooze), pa+backpressure (bead
@@ -65,7 +66,9 @@ def reference_tau(values, man) -> tuple[float, float]:
 def _fit(case, seed):
     from fit.model import build_model
     from fit.sampler import fit_map, fit_mcmc, make_problem
+    from fit.noise_envelope import widen
     from fit.nuisance import refit_checks
+    from fit.sandwich_envelope import widen_sandwich
     from fit.trust import assess, residual_structure
     from patterns.profile import load_profile
 
@@ -76,7 +79,12 @@ def _fit(case, seed):
     r = fit_mcmc(pb, map_result=fit_map(pb, seed=seed, global_search=True), seed=seed,
                  progress=False, max_steps=8000, n_loo_draws=100)
     r.diagnostics["residual_structure"] = residual_structure(pb, r.map.theta, seed=seed)
-    # the refits `calib fit` asks before its verdict: nuisances, the structure, a missing effect
+    # the intervals `calib fit` reports (no width calibration here, so no offset envelope):
+    # widened to hold the short-wobble fit and by the residuals' own scatter (sandwich)
+    widen(pb, r, seed=seed)
+    widen_sandwich(pb, r, seed=seed)
+    # the refits `calib fit` asks before its verdict, judged against those intervals:
+    # nuisances, the structure, a missing effect
     refit_checks(lambda s: make_problem(build_model(s, prof), sc), model, r, seed=seed)
     v = assess(r.to_json())
     lo, hi = r.params["pa.tau_s"].ci95

@@ -41,13 +41,16 @@ class AutoResult:
     steps: list[AutoStep] = field(default_factory=list)
     stop: str = ""
     top_covariate: str | None = None
+    #: [(covariate, share)] this print cannot tell from ``top_covariate`` (fit/covariates.py aliases)
+    top_aliases: list = field(default_factory=list)
     #: the chosen model's MAP found by the chain (parameter name -> value): the final fit
     #: starts from it too (calib/commands/fit.py run_fit)
     map_values: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {"model": self.model, "steps": [asdict(s) for s in self.steps], "stop": self.stop,
-                "top_covariate": self.top_covariate}
+                "top_covariate": self.top_covariate,
+                "top_aliases": [{"name": n, "share": x} for n, x in self.top_aliases]}
 
     def lines(self) -> list[str]:
         out = [f"{'model':40s} {'RMS (um)':>9s} {'chi2_nu':>9s} {'chi2_nu_bead':>13s} {'Delta BIC':>10s}"]
@@ -77,6 +80,7 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
             res.steps.append(AutoStep(spec, base.rms_mm, base.chi2_nu, base.bic,
                                       chi2_nu_bead=base.chi2_nu_bead))
         res.top_covariate = d.covariates[0].name if d.covariates and d.covariates[0].score > 0 else None
+        res.top_aliases = list(d.top_aliases) if res.top_covariate else []
         ok = [c for c in d.candidates if c.fit is not None and c.delta_bic == c.delta_bic]
         best = ok[0] if ok else None
         # An effect every real bead has (fit/nuisance.py) joins on the BIC alone: spread
@@ -94,7 +98,7 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
         if len(res.steps) > max_rounds:
             res.stop = f"stopped after {max_rounds} added effects"
             if base.chi2_nu_bead > chi2_max:    # the cap, not the data, ended it: say what is left
-                cov = res.top_covariate or "no covariate in particular"
+                cov = _covariate_text(res)
                 res.stop += (f", and the model still does not fit: chi2_nu_bead {base.chi2_nu_bead:.2f} > "
                              f"{chi2_max:g}; the residuals line up with {cov}")
             break
@@ -113,10 +117,11 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
             # judged as the trust verdict judges it: on realistic renders the right model
             # has chi2_nu ~5 against the measurement sd alone and chi2_nu_bead ~1
             if base.chi2_nu_bead > chi2_max:
-                cov = res.top_covariate or "no covariate in particular"
+                cov = _covariate_text(res)
                 res.stop = (f"no library effect explains the rest: {why}, chi2_nu_bead stays "
                             f"{base.chi2_nu_bead:.2f} > {chi2_max:g}; the residuals line up with {cov}, "
-                            f"so the missing effect depends on it (write it as your own effect, "
+                            f"so the missing effect depends on {'one of them' if res.top_aliases else 'it'} "
+                            "(write it as your own effect, "
                             f"docs/DISCOVER.md, and pass it with --effects)")
             else:
                 res.stop = f"the model explains the data: {why}"
@@ -127,6 +132,16 @@ def auto_model(scan, build, library, user=(), base_spec: str = "pa", seed: int =
     res.model = spec
     res.map_values = dict(base.map.values)
     return res
+
+
+def _covariate_text(res: AutoResult) -> str:
+    """The covariate the stop reason names, with what this print cannot tell from it."""
+    if not res.top_covariate:
+        return "no covariate in particular"
+    if not res.top_aliases:
+        return res.top_covariate
+    return (f"{res.top_covariate} (on this print as well with "
+            + ", ".join(f"{n} ({100 * x:.0f} %)" for n, x in res.top_aliases[:3]) + ")")
 
 
 def _improves(c, base_chi2_nu: float, min_chi2_drop: float) -> bool:

@@ -24,7 +24,8 @@ import numpy as np
 
 from fit.compare import ModelFit, delta_elpd, fit_model, full_fit
 from fit.data import ScanData
-from fit.covariates import CovariateScore, Covariates, advance_mm, compute_covariates, score_covariates
+from fit.covariates import (CovariateScore, Covariates, advance_mm, aliases, compute_covariates,
+                            score_covariates)
 from fit.measurement import chi2_nu_expected, scatter
 from fit.trust import _bound_problem
 
@@ -210,6 +211,15 @@ class Diagnosis:
     #: supported), and the covariate the verdict names
     covariates_after: list[CovariateScore] = field(default_factory=list)
     named_covariate: str = ""
+    #: which residuals the named covariate lines up with: "base" (the diagnosed model's) or
+    #: "after" (what the best candidate leaves)
+    named_from: str = "base"
+    #: [(covariate, share)]: what this print cannot tell from the named covariate
+    #: (fit/covariates.py aliases: the share of its residual pattern each reproduces)
+    aliases: list = field(default_factory=list)
+    #: the same for the base misfit's top covariate (``covariates[0]``; `--model auto`
+    #: names it when the chain stops with a misfit)
+    top_aliases: list = field(default_factory=list)
     #: candidates the data do not tell from the best (Delta BIC within TIE_DELTA_BIC of it)
     tied: list[str] = field(default_factory=list)
     #: the picture's nuisance fitted beside a geometric best candidate (PICTURE_TWINS)
@@ -253,6 +263,7 @@ class Diagnosis:
             "covariates_after": [{"name": s.name, "score": num(s.score), "r2": num(s.r2),
                                   "p_value": num(s.p_value)} for s in self.covariates_after],
             "named_covariate": self.named_covariate,
+            "aliases": [{"name": n, "share": num(x)} for n, x in self.aliases],
             "tied": list(self.tied),
             "picture_twin": ({"effect": self.picture_twin.effect, "delta_bic": num(self.picture_twin.delta_bic),
                               "chi2_nu_after": num(self.picture_twin.chi2_nu_after)}
@@ -365,7 +376,27 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
         diag.covariates_after = score_covariates(ok[0].fit.resid_mm, cov, track=smp.track[o],
                                                  n_null=n_null, seed=seed)
     _verdict(diag, command_prefix, effects_arg)
+    if scores and scores[0].score > 0:
+        diag.top_aliases = aliases(base.resid_mm, cov, scores[0].name)
+    if diag.named_covariate:
+        resid = ok[0].fit.resid_mm if diag.named_from == "after" else base.resid_mm
+        diag.aliases = aliases(resid, cov, diag.named_covariate)
+        diag.verdict += alias_text(diag.named_covariate, diag.aliases)
     return diag
+
+
+def alias_text(name: str, found: list) -> str:
+    """The verdict's sentence on what this print cannot tell from the named covariate
+    (fit/covariates.py :func:`~fit.covariates.aliases`); "" when nothing."""
+    if not found:
+        return ""
+    shown = found[:3]
+    lst = ", ".join(f"{n} ({100 * x:.0f} %)" for n, x in shown)
+    more = f" and {len(found) - len(shown)} more" if len(found) > len(shown) else ""
+    return (f" On this print {name} moves with {lst}{more} (the share of its pattern in the residuals "
+            f"each reproduces): these widths hardly tell them apart, so the cause may depend on any of "
+            "them. A print that varies them separately (stops with and without a retraction, stops of "
+            "different lengths, width and speed changed within a line) tells which.")
 
 
 def _at_bound(model, f: ModelFit, effect: str) -> list[str]:
@@ -564,6 +595,7 @@ def _explains_part(d: Diagnosis, best: Candidate, top_cov: CovariateScore | None
                       f"on {top_cov.name}{write}")
     elif (left is not None and left.p_value <= LEFTOVER_P and left.score >= LEFTOVER_MIN_SCORE):
         d.named_covariate = left.name
+        d.named_from = "after" if d.covariates_after else "base"
         d.verdict += (f"{part}, and what it leaves lines up best with {left.name} (explains "
                       f"{100 * left.score:.0f} % of the remaining variance beyond chance, p = "
                       f"{left.p_value:.3g}). If no library effect fits, write one that depends "

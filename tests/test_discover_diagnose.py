@@ -535,3 +535,40 @@ def test_scan_curve_bends_the_apparent_width_about_half_a_millimetre():
     p = {"c2_per_mm": np.array([[-0.1]]), "c3_per_mm2": np.array([[0.14]])}
     out = ScanCurve().width(None, w, p)
     assert np.allclose(out, [[0.4 - 0.001 - 0.00014, 0.5, 0.85 - 0.01225 + 0.0060025]], atol=1e-12)
+
+
+def test_aliases_are_the_covariates_that_reproduce_the_named_ones_pattern():
+    """A function of the named covariate reproduces its residual pattern in full, an
+    unrelated one does not, and the named covariate's own EQUIVALENT twin is left out."""
+    from fit.covariates import ALIAS_SHARE, Covariates, aliases
+
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 10, 3000)
+    cov = Covariates({"flow_mm3_s": a, "extruder_speed_mm_s": 0.4 * a, "t_s": np.exp(a / 3),
+                      "x_mm": rng.uniform(0, 10, 3000), "y_mm": a + rng.normal(0, 1, 3000)})
+    resid = 0.01 * np.sin(a) + 0.002 * rng.standard_normal(len(a))
+    found = dict(aliases(resid, cov, "flow_mm3_s"))
+    assert set(found) == {"t_s"} and found["t_s"] > 0.99
+    every = dict(aliases(resid, cov, "flow_mm3_s", min_share=0.0))
+    assert every["x_mm"] < 0.05 and 0.05 < every["y_mm"] < ALIAS_SHARE
+    assert "extruder_speed_mm_s" not in every
+
+
+def test_on_the_probe_print_the_last_stop_length_and_the_time_since_a_retraction_are_one():
+    """The probe's every track starts after a retraction and stops once, 3 s, mid-way: a
+    residual that steps after that stop (a cause that depends on the last stop's length)
+    lines up as well with the time since a retraction and the arc length, and the verdict
+    says so; not with flow."""
+    from fit.covariates import aliases
+    from fit.diagnose import alias_text
+
+    c = make_case("thermal", seed=0, **FAST)
+    t, ok = c.table, c.table.valid
+    cov = compute_covariates(c.manifest, t.track[ok], t.s_mm[ok], t.t_s[ok], t.x_mm[ok], t.y_mm[ok])
+    L = cov["last_stop_duration_s"]
+    resid = 0.01 * (L > 2.0) + 0.002 * np.random.default_rng(0).standard_normal(len(L))
+    found = dict(aliases(resid, cov, "last_stop_duration_s"))
+    assert {"time_since_retract_s", "s_mm"} <= set(found) and "flow_mm3_s" not in found
+    text = alias_text("last_stop_duration_s", aliases(resid, cov, "last_stop_duration_s"))
+    assert "moves with s_mm (100 %)" in text and "tells which" in text
+    assert alias_text("flow_mm3_s", []) == ""

@@ -106,9 +106,10 @@ def test_a_step_added_from_a_tie_says_so_in_the_chain():
     assert r.to_json()["steps"][1]["tied"] == ["backlash"]
 
 
-def _fake_diagnose(rounds):
+def _fake_diagnose(rounds, top_aliases=()):
     """A stand-in for fit.diagnose.diagnose that returns the given rounds of candidates:
-    each round (base (rms_mm, chi2_nu, bic), [(effect, delta_bic, chi2_nu_after), ...])."""
+    each round (base (rms_mm, chi2_nu, bic), [(effect, delta_bic, chi2_nu_after), ...]);
+    ``top_aliases``: what the print cannot tell from the top covariate, speed_mm_s."""
     from types import SimpleNamespace as NS
     it = iter(rounds)
 
@@ -119,7 +120,7 @@ def _fake_diagnose(rounds):
                  fit=NS(rms_mm=rms, chi2_nu=c2, bic=b.bic - db, chi2_nu_bead=c2 / 2, map=NS(values={})))
               for e, db, c2 in cands]
         return NS(base=b, covariates=[NS(name="speed_mm_s", score=0.3)], candidates=cs,
-                  best=cs[0].effect if cs else None, tied=[])
+                  best=cs[0].effect if cs else None, tied=[], top_aliases=list(top_aliases))
     return fake
 
 
@@ -170,3 +171,19 @@ def test_a_chain_stopped_by_its_cap_says_when_the_model_still_misfits(monkeypatc
                                                              ((0.01, 1.0, -30.0), [("spread", 30.0, 0.9)])]))
     r = auto_model(None, None, [], [], base_spec="pa", max_rounds=1)
     assert r.stop == "stopped after 1 added effects"
+
+
+def test_the_stop_names_what_the_print_cannot_tell_from_the_covariate(monkeypatch):
+    """When the chain stops with a misfit, the covariate it names comes with the ones this
+    print cannot tell from it (fit/covariates.py aliases), and the effect is said to depend
+    on one of them, not on the first alone."""
+    import fit.auto
+    rounds = [((0.30, 20.0, 0.0), [("thermal", 4.0, 19.0)])]
+    monkeypatch.setattr(fit.auto, "diagnose", _fake_diagnose(rounds, [("s_mm", 0.86), ("t_s", 0.79)]))
+    r = auto_model(None, None, [], [], base_spec="pa")
+    assert "line up with speed_mm_s (on this print as well with s_mm (86 %), t_s (79 %))" in r.stop
+    assert "depends on one of them" in r.stop
+    assert r.to_json()["top_aliases"] == [{"name": "s_mm", "share": 0.86}, {"name": "t_s", "share": 0.79}]
+    monkeypatch.setattr(fit.auto, "diagnose", _fake_diagnose(rounds))
+    r = auto_model(None, None, [], [], base_spec="pa")
+    assert "line up with speed_mm_s, so the missing effect depends on it " in r.stop
