@@ -36,6 +36,7 @@ The family each foreign effect belongs to (what diagnose should name) is ``FAMIL
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,16 @@ from patterns.manifest import sample_points
 DT_S = 0.001
 #: mm of prime line before the probe's first track (fit.hidden.probe_manifest)
 PRIME_MM = 60.0
+#: The probe's stops (fit.hidden.probe_manifest): ``CALIB_BENCH_FOREIGN_PROBE`` "separated"
+#: varies each track's stop length (1.5 / 3 / 6 s), place (half or three quarters along)
+#: and whether the head retracts there (each head speed once with, once without), so that
+#: the last stop's length, the time since a retraction and the arc length part; "plain"
+#: (the default) is the probe as the covariate rules were shaped on: every stop 3 s, 65 %
+#: along, no retraction.
+PROBE = os.environ.get("CALIB_BENCH_FOREIGN_PROBE", "plain")
+PROBE_KW = {"plain": {},
+            "separated": {"stop_s": (1.5, 3.0, 6.0), "stop_at": (0.5, 0.75),
+                          "stop_retract": (True, False, False, True, False, True, True, False)}}
 FOOTPRINT_SD_MM = 0.12
 
 #: foreign effect -> its parameters (sizes comparable to fit/hidden.py's cases)
@@ -207,7 +218,7 @@ def _draw(hidden: str, seed: int):
     # a prime line first: the two printers start their extruder's state differently (the
     # library's dead band pushed forward, this one's in the middle of its play), and no
     # real print's starting state is known either; its purge line sets it
-    man = probe_manifest(prime_mm=PRIME_MM)
+    man = probe_manifest(prime_mm=PRIME_MM, **PROBE_KW[PROBE])
     tau = 0.35 * float(np.exp(0.2 * rng.standard_normal()))
     p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN.get(hidden, {}).items()}
     return rng, man, tau, p

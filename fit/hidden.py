@@ -78,12 +78,21 @@ def probe_printer() -> dict:
 
 
 def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float = 0.2,
-                   accel_mm_s2: float = 1500.0, stop_s: float = 3.0, slow_mm_s: float = 20.0,
+                   accel_mm_s2: float = 1500.0, stop_s=3.0, slow_mm_s: float = 20.0,
                    fast_mm_s=(30.0, 60.0, 100.0, 140.0), widths_mm=(0.40, 0.55, 0.70, 0.85),
                    gap_mm: float = 8.0, retract_mm: float = 1.0, prime_mm: float = 0.0,
-                   printer: dict | None = None) -> Manifest:
+                   printer: dict | None = None, stop_at=0.65, stop_retract=False) -> Manifest:
     """The probe print described in the module docstring, as a Manifest with its timeline.
 
+    ``stop_s`` (s) and ``stop_at`` (fraction of the track's length): the mid-track stop's
+    length and place, one value or a sequence cycled over the tracks. With one of each
+    (the default) every stop lasts as long and sits as far along its track, so the last
+    stop's length, the time since a retraction and the arc length move together and no
+    residual can tell them apart (fit/covariates.py aliases); cycled with periods prime to
+    each other they do not. ``stop_retract`` (bool, or a sequence cycled likewise): the head
+    retracts ``retract_mm`` at the start of that stop and unretracts at its end, as a
+    slicer's retraction at a layer change or a wipe does, so that the time since a
+    retraction and since a stop part.
     ``prime_mm``: a prime line (not a track: nothing is measured on it) printed at
     ``slow_mm_s`` before the first track, as a real print's purge line. Without it the
     first track depends on where the extruder's state begins, which no print can know: the
@@ -132,8 +141,14 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
         t, e = t + tq[-1], e + area * prime_mm / af
         pos = np.array([x0 + prime_mm, start[1]])
         t, e = move_e(t, pos, -1.0)
+    stops = np.atleast_1d(np.asarray(stop_s, dtype=float))
+    places = np.atleast_1d(np.asarray(stop_at, dtype=float))
+    retracts = np.atleast_1d(np.asarray(stop_retract, dtype=bool))
+    rt = retract_mm / 30.0   # s: a retraction at 30 mm/s, as move_e
     for i in range(n_tracks):
         v_fast = fast_mm_s[i % len(fast_mm_s)]
+        dwell, place = float(stops[i % len(stops)]), float(places[i % len(places)])
+        retract_here = bool(retracts[i % len(retracts)])
         w = widths_mm[(i + i // len(fast_mm_s)) % len(widths_mm)]
         forward = i % 2 == 0
         y = y0 + i * gap_mm
@@ -142,7 +157,7 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
         t = travel(t, pos, (xa, y))
         t, e = move_e(t, (xa, y), 1.0)
         # the track: speed profile over arc length with accel limits and a stop
-        s_slow, s_stop = 0.25 * length_mm, 0.65 * length_mm
+        s_slow, s_stop = 0.25 * length_mm, place * length_mm
         ds = 0.02
         s = np.arange(0, length_mm + ds / 2, ds)
         vt = np.where(s < s_slow, slow_mm_s, v_fast)
@@ -157,12 +172,15 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
             v[k] = min(v[k], np.sqrt(v[k + 1] ** 2 + 2 * accel_mm_s2 * ds))
         dt_seg = 2 * ds / (v[1:] + v[:-1])
         ts = np.concatenate([[0.0], np.cumsum(dt_seg)])
-        ts[istop + 1:] += stop_s  # dwell at the stop: the time jumps, s does not
+        ts[istop + 1:] += dwell  # dwell at the stop: the time jumps, s does not
         area = float(bead_area_mm2(w, height_mm))
         # resample uniformly in time (<= 4 ms) and add the dwell nodes
         t_end = ts[-1]
-        tq = np.unique(np.concatenate([np.arange(0, t_end, 0.004), [t_end],
-                                       np.linspace(ts[istop], ts[istop + 1], 40)]))
+        t0, t1 = ts[istop], ts[istop + 1]
+        r_nodes = t0 + rt * np.linspace(0, 1, 8)[1:]
+        u_nodes = t1 - rt + rt * np.linspace(0, 1, 8)[1:]
+        tq = np.unique(np.concatenate([np.arange(0, t_end, 0.004), [t_end], np.linspace(t0, t1, 40)]
+                                      + ([r_nodes, u_nodes] if retract_here else [])))
         before = tq <= ts[istop]
         sq = np.where(before, np.interp(tq, ts[:istop + 1], s[:istop + 1]),
                       np.interp(tq, ts[istop + 1:], s[istop + 1:]))
@@ -171,8 +189,14 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
                       np.interp(tq, ts[istop + 1:], v[istop + 1:]))
         vq = np.where((tq > ts[istop]) & (tq < ts[istop + 1]), 0.0, vq)
         eq = e + area * sq / af
+        veq = area * vq / af
+        if retract_here:     # E back retract_mm over rt from t0, forward over rt up to t1
+            back = np.clip(tq - t0, 0.0, rt) - np.clip(tq - (t1 - rt), 0.0, rt)
+            eq = eq - 30.0 * back
+            veq = np.where((tq > t0 + 1e-9) & (tq <= t0 + rt + 1e-9), -30.0, veq)
+            veq = np.where((tq > t1 - rt + 1e-9) & (tq <= t1 + 1e-9), 30.0, veq)
         sign = 1.0 if forward else -1.0
-        emit(t + tq, xa + sign * sq, np.full(len(tq), y), vq, area * vq / af, eq, i, sq)
+        emit(t + tq, xa + sign * sq, np.full(len(tq), y), vq, veq, eq, i, sq)
         t, e = t + t_end, e + area * length_mm / af
         tracks.append(Track(id=i, kind="test", points_mm=[[xa, y], [xb, y]], width_mm=w,
                             height_mm=height_mm, flow_mm3_s=area * v_fast, z_mm=height_mm,
