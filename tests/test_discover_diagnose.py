@@ -572,3 +572,39 @@ def test_on_the_probe_print_the_last_stop_length_and_the_time_since_a_retraction
     text = alias_text("last_stop_duration_s", aliases(resid, cov, "last_stop_duration_s"))
     assert "moves with s_mm (100 %)" in text and "tells which" in text
     assert alias_text("flow_mm3_s", []) == ""
+
+
+def test_the_probe_can_vary_its_stops_so_their_covariates_part():
+    """Each track's stop may last as long as asked, sit where asked, and retract: after a
+    stop with a retraction the time since a retraction is the stop's length plus the time
+    since it (the extruder last ran backwards as the stop began), and E comes back to the
+    track's own; a stop without one leaves the track start's retraction the last."""
+    from fit.hidden import probe_manifest
+    from patterns.manifest import sample_points
+
+    man = probe_manifest(n_tracks=3, length_mm=40.0, stop_s=(1.5, 4.0), stop_at=(0.5, 0.75),
+                         stop_retract=(True, False))
+    assert [man.track(k).params["stop_s_mm"] for k in range(3)] == pytest.approx([20.0, 30.0, 20.0])
+    tl = man.timeline
+    assert (tl.ve_mm_s[tl.track == 0] < 0).any() and (tl.ve_mm_s[tl.track == 2] < 0).any()
+    assert not (tl.ve_mm_s[tl.track == 1] < 0).any()
+    # E over a track is its bead's filament (A(w, h) L / Af), retraction or not, and the
+    # retraction takes retract_mm (1 mm) back
+    from fit.geometry import bead_area_mm2, filament_area_mm2
+    af = filament_area_mm2(man.printer["filament_diameter_mm"])
+    for k in range(3):
+        e = tl.e_mm[tl.track == k]
+        area = float(np.squeeze(bead_area_mm2(man.track(k).params["width_mm"], 0.2)))
+        assert e[-1] - e[0] == pytest.approx(area * 40.0 / af, rel=1e-6)
+        back = np.min(e - np.maximum.accumulate(e))
+        assert back == pytest.approx(-1.0 if k != 1 else 0.0, abs=1e-9)
+    smp = sample_points(man, ds_mm=0.5, margin_mm=0.5)
+    cov = compute_covariates(man, smp.track, smp.s_mm, smp.t_s, smp.x_mm, smp.y_mm)
+    after = [(smp.track == k) & (np.abs(smp.s_mm - (man.track(k).params["stop_s_mm"] + 5.0)) < 0.3)
+             for k in range(3)]
+    lsd = [float(cov["last_stop_duration_s"][m][0]) for m in after]
+    assert lsd == pytest.approx([1.5, 4.0, 1.5], abs=0.02)
+    tss = [float(cov["time_since_stop_s"][m][0]) for m in after]
+    tsr = [float(cov["time_since_retract_s"][m][0]) for m in after]
+    assert tsr[0] == pytest.approx(1.5 + tss[0], abs=0.05) and tsr[2] == pytest.approx(1.5 + tss[2], abs=0.05)
+    assert tsr[1] > 4.0 + tss[1] + 40.0 * 0.5 / 30.0     # since the track start's retraction
