@@ -22,6 +22,12 @@ render_foreign_case), diagnosed from where `calib fit --model auto` starts on th
 (``spread``) added before the effect is named. "No library form fits" is judged as diagnose
 judges it: chi2_nu over what the measurement alone gives a right model (fit/measurement.py
 chi2_nu_expected).
+
+``CALIB_BENCH_FOREIGN_PROBE=separated`` prints a probe whose stops vary in length, place
+and retraction (bench/foreign_printer.py PROBE_KW), so the stop covariates part: with it
+(session 59, 6 white-noise seeds) every family is named first (30/30) but a right
+covariate only on 11 of 24 no-fit cases, against 27/30 and 14/18 on the plain probe
+(docs/DISCOVER.md, "A probe whose covariates part").
 """
 from __future__ import annotations
 

@@ -29,8 +29,16 @@ in its input), A = G^T G is the information the noise model claims and
     u_j = G_j e_j  (the score of station j; lags within a track only),
 
 the information's scatter as the residuals show it (Newey & West 1987, Econometrica 55
-703, Bartlett weights; L = floor(4 (n / 100)^(2/9)), their 1994 rule, 7 for 1,440
-stations). V = A^-1 B A^-1; a parameter's ratio is sqrt(V_ii / (A^-1)_ii), 1 when the
+703, Bartlett weights). The bandwidth L is each parameter's own (:func:`bandwidths`): as
+many stations as its whitened Jacobian column stays coherent along the track, at least
+Newey-West's 1994 rule floor(4 (n / 100)^(2/9)) (7 for 1,440 stations), at most 256. A
+direct drive's tau is read within a station of each flow change and keeps Newey-West's
+7; a Bowden's (tau 0.8 s at 20-40 mm/s) over 125 stations, and there the bead's slow
+wander adds what 7 lags cannot see (session 59, bench_e2e's Adventurer 3 case, seed 1:
+tau 0.8507 s, 90 % [0.8186, 0.8797] for 0.8, trusted at |z| 2.6; its ratio 0.85 at 7 lags,
+0.95 / 1.17 / 1.40 / 1.56 at 30 / 60 / 120 / 240; on the true widths at the same
+stations 0.77 at 7, 1.40 at 60, 1.75 at 120; with its own bandwidth, 125, 1.41).
+V = A^-1 B A^-1; a parameter's ratio is sqrt(V_ii / (A^-1)_ii), 1 when the
 noise model is right. Draws of the posterior are spread about its median by
 max(1, ratio) (in log for positive parameters, as the sampler's coordinates) and every
 interval becomes the hull (noise_envelope's rule), never narrower. The estimate is noisy
@@ -66,12 +74,45 @@ from fit.result import envelope_rows
 MAX_RATIO = 3.0
 #: relative step of the Jacobian's central differences (of |theta|, floored at 1e-3)
 STEP_REL = 1e-4
+#: the longest Bartlett bandwidth (stations; 64 mm at 0.25 mm) a parameter read over a long
+#: stretch of track gets (:func:`bandwidths`), and at most an eighth of the stations
+MAX_LAGS = 256
+#: a parameter's whitened Jacobian column is coherent while its autocorrelation along the
+#: track stays at or above this (:func:`bandwidths`)
+COHERENT = 0.5
 
 
 def newey_west_lags(n: int) -> int:
     """Bartlett bandwidth (stations) for n scores: floor(4 (n / 100)^(2/9)) (Newey and West
     1994, Rev. Econ. Stud. 61 631)."""
     return int(math.floor(4.0 * (max(n, 1) / 100.0) ** (2.0 / 9.0)))
+
+
+def bandwidths(G: np.ndarray, seg: np.ndarray, n: int) -> np.ndarray:
+    """Bartlett bandwidth (stations) per column of the whitened Jacobian G (n, p): the lag
+    at which the column's autocorrelation along the track (``seg``: a track label per row,
+    pairs within one track only) first falls below COHERENT, at least Newey-West's
+    :func:`newey_west_lags` of n, at most min(MAX_LAGS, n / 8).
+
+    Why: the residuals' correlations add to a parameter's variance over as many lags as its
+    scores stay alike, which is as far as its response along the track reaches. Newey-West's
+    rule reads n alone; a direct drive's tau is read within ~1 station of each flow change
+    (its column's coherence: 1 station), a Bowden's within 125 (31 mm: tau 0.8 s at 20-40
+    mm/s), where the bead's slow wander (measure/phenomena.py ``irregular``, ~20 mm) lives."""
+    lo = newey_west_lags(n)
+    cap = max(lo, min(MAX_LAGS, n // 8))
+    out = np.full(G.shape[1], cap)
+    s0 = np.sum(G * G, axis=0)
+    open_ = s0 > 0
+    for lag in range(1, cap + 1):
+        if not open_.any():
+            break
+        same = seg[lag:] == seg[:-lag]
+        r = np.sum(G[lag:][same] * G[:-lag][same], axis=0) / np.where(s0 > 0, s0, 1.0)
+        fell = open_ & (r < COHERENT)
+        out[fell] = lag
+        open_ &= ~fell
+    return np.maximum(out, lo)
 
 
 def _scan_scores(problem, theta: np.ndarray, k: int, cols: list[int]) -> tuple[np.ndarray, np.ndarray]:
@@ -99,8 +140,14 @@ def _scan_scores(problem, theta: np.ndarray, k: int, cols: list[int]) -> tuple[n
 def sandwich_ratios(problem, theta, lags: int | None = None) -> dict:
     """{parameter: sqrt(sandwich variance / model variance)} for the non-noise parameters
     of ``problem`` (fit.likelihood.JointProblem) at ``theta`` (module docstring). ``lags``:
-    the Bartlett bandwidth in stations (default :func:`newey_west_lags` of the stations).
-    Parameters the widths do not respond to at theta (a spread at its 0 bound) are left out."""
+    the Bartlett bandwidth in stations for every parameter (default: each its own,
+    :func:`bandwidths`). Parameters the widths do not respond to at theta (a spread at its
+    0 bound) are left out."""
+    return sandwich_estimate(problem, theta, lags)[0]
+
+
+def sandwich_estimate(problem, theta, lags: int | None = None) -> tuple[dict, dict]:
+    """(:func:`sandwich_ratios`, {parameter: the Bartlett bandwidth it was read with})."""
     th = np.asarray(theta, dtype=float)
     cols = [j for j, n in enumerate(problem.param_names) if not is_noise(n)]
     parts = [_scan_scores(problem, th, k, cols) for k in range(len(problem.scans))]
@@ -108,38 +155,49 @@ def sandwich_ratios(problem, theta, lags: int | None = None) -> dict:
     norm = np.linalg.norm(G, axis=0)
     keep = norm > 1e-9 * max(float(norm.max()), 1e-300)
     if not keep.any():
-        return {}
-    L = newey_west_lags(len(G)) if lags is None else int(lags)
+        return {}, {}
+    # a new track resets (scans are independent: their labels never meet)
+    segs = [np.cumsum(~np.isfinite(sc.gap_mm)) + 10 ** 9 * k for k, sc in enumerate(problem.scans)]
+    seg = np.concatenate(segs)
+    L = (bandwidths(G[:, keep], seg, len(G)) if lags is None
+         else np.full(int(keep.sum()), int(lags)))
     A = np.zeros((keep.sum(),) * 2)
-    B = np.zeros_like(A)
-    for k, (g, u) in enumerate(parts):
+    B0 = np.zeros_like(A)
+    C = np.zeros((int(L.max()) + 1,) + A.shape)       # C[l]: lag-l cross products
+    for (g, u), sg in zip(parts, segs):
         g, u = g[:, keep], u[:, keep]
         A += g.T @ g
-        B += u.T @ u
-        seg = np.cumsum(~np.isfinite(problem.scans[k].gap_mm))     # a new track resets
-        for lag in range(1, min(L, len(u) - 1) + 1):
-            same = seg[lag:] == seg[:-lag]
-            C = u[lag:][same].T @ u[:-lag][same]
-            B += (1.0 - lag / (L + 1.0)) * (C + C.T)
+        B0 += u.T @ u
+        for lag in range(1, min(int(L.max()), len(u) - 1) + 1):
+            same = sg[lag:] == sg[:-lag]
+            c = u[lag:][same].T @ u[:-lag][same]
+            C[lag] += c + c.T
     try:
         Ai = np.linalg.inv(A)
     except np.linalg.LinAlgError:
-        return {}
-    V = Ai @ B @ Ai
+        return {}, {}
     names = [problem.param_names[j] for j, kp in zip(cols, keep) if kp]
-    return {n: float(math.sqrt(max(V[i, i], 0.0) / Ai[i, i])) for i, n in enumerate(names) if Ai[i, i] > 0}
+    ratios, used = {}, {}
+    for Lp in np.unique(L):
+        lag = np.arange(1, Lp + 1)
+        B = B0 + np.tensordot(1.0 - lag / (Lp + 1.0), C[1:Lp + 1], axes=1)
+        V = Ai @ B @ Ai
+        for i in np.flatnonzero(L == Lp):
+            if Ai[i, i] > 0:
+                ratios[names[i]] = float(math.sqrt(max(V[i, i], 0.0) / Ai[i, i]))
+                used[names[i]] = int(Lp)
+    return ratios, used
 
 
 def widen_sandwich(problem, result, *, seed: int = 0, derive=None) -> dict:
     """Widen ``result`` (fit.result.FitResult of ``problem``) in place by the sandwich
     ratios at its MAP (module docstring) and return what was done (``result.diagnostics
-    ["sandwich"]``): {"applied", "lags", "ratio": {name: ratio}, "widened": {name:
+    ["sandwich"]``): {"applied", "lags": {name: Bartlett bandwidth, stations}, "ratio": {name: ratio}, "widened": {name:
     {"ci95_posterior", "ci95"}}}. ``derive(samples) -> dict``: fit.derived.derived_values
     for draws in ``problem``'s order; ``result.derived`` is widened with it."""
     theta = np.asarray(result.map.theta, dtype=float)
-    n = sum(len(sc.order) for sc in problem.scans)
-    ratios = sandwich_ratios(problem, theta)
-    info = {"applied": False, "lags": newey_west_lags(n), "ratio": ratios, "widened": {}}
+    ratios, lags = sandwich_estimate(problem, theta)
+    info = {"applied": False, "lags": lags, "ratio": ratios, "widened": {}}
     result.diagnostics["sandwich"] = info
     grow = {p: min(r, MAX_RATIO) for p, r in ratios.items() if r > 1.0 and p in result.param_names}
     if not grow:
@@ -168,9 +226,8 @@ def widen_map_sandwich(problem, map_result) -> dict:
     ``problem``): its covariance becomes D C D, D the diagonal of max(1, ratio) (capped at
     MAX_RATIO; 1 for noise parameters), in place; the correlations stay. Returns {"applied",
     "lags", "ratio", "sd_before": {name: sd}}."""
-    ratios = sandwich_ratios(problem, map_result.theta)
-    n = sum(len(sc.order) for sc in problem.scans)
-    info = {"applied": False, "lags": newey_west_lags(n), "ratio": ratios, "sd_before": {}}
+    ratios, lags = sandwich_estimate(problem, map_result.theta)
+    info = {"applied": False, "lags": lags, "ratio": ratios, "sd_before": {}}
     C = np.asarray(map_result.cov, dtype=float)
     d = np.array([min(max(ratios.get(p, 1.0), 1.0), MAX_RATIO) for p in problem.param_names])
     if C.shape != (len(d), len(d)) or not np.any(d > 1.0):

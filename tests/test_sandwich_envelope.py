@@ -15,7 +15,8 @@ from fit.data import ScanData
 from fit.likelihood import JointProblem, NoiseOptions
 from fit.result import ParamSummary
 from fit.sampler import fit_map
-from fit.sandwich_envelope import MAX_RATIO, newey_west_lags, sandwich_line, sandwich_ratios, widen_sandwich
+from fit.sandwich_envelope import (MAX_LAGS, MAX_RATIO, bandwidths, newey_west_lags, sandwich_estimate,
+                                   sandwich_line, sandwich_ratios, widen_sandwich)
 from measure.table import WidthTable
 from patterns.manifest import Samples
 from tests.test_offset_envelope import ConstModel, _Ctx
@@ -52,23 +53,50 @@ def _bartlett(rho: float, L: int) -> float:
 
 def test_the_ratio_is_the_variance_the_ignored_correlation_adds():
     n = 8000
-    L = newey_west_lags(n)
-    assert L == 10                                # floor(4 (80)^(2/9)) = floor(10.6)
+    assert newey_west_lags(n) == 10               # floor(4 (80)^(2/9)) = floor(10.6)
     for rho in (0.5, 0.7):
         pb = _white(_scan(rho, n=n, seed=3))
-        r = sandwich_ratios(pb, fit_map(pb).theta)["flow.w_mm"]
-        assert r == pytest.approx(_bartlett(rho, L), rel=0.12)
-        assert r > 1.4                            # the white model's interval is that much too narrow
+        theta = fit_map(pb).theta
+        r, lags = sandwich_estimate(pb, theta)
+        # a constant is read alike all along its tracks: the longest bandwidth
+        assert lags["flow.w_mm"] == MAX_LAGS
+        assert r["flow.w_mm"] == pytest.approx(_bartlett(rho, MAX_LAGS), rel=0.12)
+        assert r["flow.w_mm"] > 1.6               # the white model's interval is that much too narrow
+        # Newey-West's own bandwidth reads the same here: rho^10 is already small
+        r10 = sandwich_ratios(pb, theta, lags=10)["flow.w_mm"]
+        assert r10 == pytest.approx(_bartlett(rho, 10), rel=0.12)
     pb = _white(_scan(0.0, n=n, seed=3))
     assert sandwich_ratios(pb, fit_map(pb).theta)["flow.w_mm"] == pytest.approx(1.0, abs=0.1)
 
 
+def test_the_bandwidth_is_how_far_a_parameters_response_reaches_along_the_track():
+    """A column that decays over 40 stations (a slow transient: a Bowden's tau at 20-40
+    mm/s) is read with its autocorrelation's half-width (exp(-l / 40) = 1/2 at l = 28),
+    one that lives on a single station (a direct drive's tau) with Newey-West's bandwidth,
+    and no bandwidth crosses a track or exceeds MAX_LAGS."""
+    n_per, tracks = 1000, 4
+    j = np.tile(np.arange(n_per), tracks)
+    seg = np.repeat(np.arange(tracks), n_per)
+    slow = np.where(j % 200 >= 100, np.exp(-(j % 200 - 100) / 40.0), 0.0)
+    spike = np.where(j % 200 == 100, 1.0, 0.0)
+    const = np.ones(len(j))
+    L = bandwidths(np.column_stack([slow, spike, const]), seg, len(j))
+    assert L[0] == pytest.approx(round(40 * math.log(2)) + 1, abs=2)
+    assert L[1] == newey_west_lags(len(j))
+    assert L[2] == min(MAX_LAGS, len(j) // 8)
+
+
 def test_the_noise_model_that_has_the_correlation_needs_no_widening():
     """The default noise model (an OU wobble beside the white error) takes AR(1) errors as
-    its own: the ratio is ~1 where the white model's was ~1.7."""
+    its own: no widening (ratio <= 1 within the estimate's noise), where the white model's
+    is ~2. At Newey-West's bandwidth the ratio is ~1; at the constant's own (256 lags on
+    2,000-station tracks) the long-run variance of scores that sum to zero at the MAP reads
+    low (Bartlett's bias, ~2 L / n of it), which only leaves the interval as it is."""
     sc = _scan(0.6, seed=5)
     pb = JointProblem([sc], [ConstModel()], NoiseOptions(relative=False))
-    assert sandwich_ratios(pb, fit_map(pb).theta)["flow.w_mm"] == pytest.approx(1.0, abs=0.15)
+    theta = fit_map(pb).theta
+    assert sandwich_ratios(pb, theta)["flow.w_mm"] < 1.1
+    assert sandwich_ratios(pb, theta, lags=newey_west_lags(8000))["flow.w_mm"] == pytest.approx(1.0, abs=0.15)
     pbw = _white(sc)
     assert sandwich_ratios(pbw, fit_map(pbw).theta)["flow.w_mm"] > 1.5
 
