@@ -280,13 +280,12 @@ def score_covariates(resid, cov: Covariates, track=None, n_bins: int = 12, n_nul
     return out
 
 
-
 #: A covariate whose binned curve reproduces at least this share of another's pattern in
 #: the residuals is, to these data, the same cause (:func:`aliases`). On the diagnose
 #: bench's probe print (bench/foreign_printer.py: each track starts after a retraction,
 #: its one stop always 3 s long) the foreign gear slip's misfit pattern on the last stop's
 #: length is 85-86 % reproduced by the time since a retraction and 79 % by the arc length;
-#: by flow, its cause, 24 %.
+#: by flow, its cause, 24 % or less.
 ALIAS_SHARE = 0.75
 
 
@@ -333,6 +332,7 @@ def aliases(resid, cov: Covariates, name: str, n_bins: int = 12,
         if share >= min_share:
             out.append((other, share))
     return sorted(out, key=lambda x: -x[1])
+
 
 # -- helpers ---------------------------------------------------------------------------
 
