@@ -18,7 +18,9 @@ covariate" >= 80 % of the cases where no library form fits.
 Rendered (``RENDERED_SEEDS``): the same prints pictured with every phenomenon of
 measure/phenomena.py on a 600 dpi flatbed and measured by our pipeline (foreign_printer.
 render_foreign_case), diagnosed from where `calib fit --model auto` starts on those widths
-(``pa+scan_bias``: they are apparent widths), a nuisance the chain would add first
+(fit/measurement.py auto_start: since session 60 the probe prints our width reference and
+the widths come calibrated, the offset's sd deciding whether ``scan_bias`` stays in the
+base; ``CALIB_BENCH_FOREIGN_REFERENCE=0``: apparent widths, ``pa+scan_bias``), a nuisance the chain would add first
 (``spread``) added before the effect is named. "No library form fits" is judged as diagnose
 judges it: chi2_nu over what the measurement alone gives a right model (fit/measurement.py
 chi2_nu_expected).
@@ -57,8 +59,8 @@ def _log(msg):
 def one(hidden: str, seed: int, rendered: bool = False) -> dict:
     """Diagnose one case. ``rendered``: the print pictured with every phenomenon and
     measured (foreign_printer.render_foreign_case), diagnosed from where `calib fit --model
-    auto` starts on its widths (``pa+scan_bias``: apparent widths, the probe has no width
-    reference); else its widths with white noise, from ``pa``."""
+    auto` starts on its widths (fit/measurement.py auto_start on what the probe's width
+    reference gave); else its widths with white noise, from ``pa``."""
     from fit import measurement
     from fit.compare import observe
     from fit.diagnose import diagnose
@@ -140,11 +142,13 @@ def _rendered_rows(res: list[dict]) -> list[Row]:
     right = [r for r in res if r["hidden"] == RIGHT_MODEL]
     res = [r for r in res if r["hidden"] != RIGHT_MODEL]
     fig = [r["figures"] for r in res]
+    n_cal = sum(not f["apparent"] for f in fig)
     rows = [Row(tag, f"measured widths ({len(res)} prints, 600 dpi flatbed, every phenomenon, pose from "
                      f"8 points of the true camera): RMS / bias (median), valid "
-                     f"{100 * np.median([f['valid'] for f in fig]):.0f} %",
+                     f"{100 * np.median([f['valid'] for f in fig]):.0f} %, calibrated by the width reference "
+                     f"{n_cal} of {len(fig)}",
                 1000 * np.median([f["rms_mm"] for f in fig]), "um",
-                f"bias {1000 * np.median([f['bias_mm'] for f in fig]):+.1f} um (apparent widths)", None)]
+                f"bias {1000 * np.median([f['bias_mm'] for f in fig]):+.1f} um", None)]
     for h in FOREIGN:
         rr = [r for r in res if r["hidden"] == h]
         rows.append(Row(tag, f"{h}: family named first ({len(rr)} seeds; top: "

@@ -59,6 +59,13 @@ PROBE_KW = {"plain": {},
             "separated": {"stop_s": (1.5, 3.0, 6.0), "stop_at": (0.5, 0.75),
                           "stop_retract": (True, False, False, True, False, True, True, False)}}
 FOOTPRINT_SD_MM = 0.12
+#: The rendered probe prints our width reference (``CALIB_BENCH_FOREIGN_REFERENCE``, "1" by
+#: default; "0": apparent widths, as before session 60). Without it the fit frees the
+#: picture's edge offset (``scan_bias``), which also takes the part of a width-dependent
+#: effect that looks like an offset: on back-pressure seed 0 the base misfit then lined up
+#: with the advance (score 0.23) where, the true offset removed, it lines up with head
+#: speed and flow (0.62 / 0.56; docs/DISCOVER.md "The rendered probe with a width reference").
+REFERENCE = os.environ.get("CALIB_BENCH_FOREIGN_REFERENCE", "1") != "0"
 
 #: foreign effect -> its parameters (sizes comparable to fit/hidden.py's cases)
 FOREIGN = {
@@ -208,17 +215,18 @@ def simulate(manifest, tau_s: float, hidden: str | None, p: dict | None = None,
     return area, h_st, smp
 
 
-def _draw(hidden: str, seed: int):
+def _draw(hidden: str, seed: int, reference: bool = False):
     """(rng, probe manifest, tau_s, effect parameters) of a case: tau 0.35 s x lognormal(0.2),
     the effect's parameters within +-20 % of FOREIGN's (none for RIGHT_MODEL: the plain
-    spring, dP/dt = ve - P / tau, which `pa` describes)."""
+    spring, dP/dt = ve - P / tau, which `pa` describes). ``reference``: the probe with the
+    width reference our patterns print (fit.hidden.probe_manifest)."""
     from fit.hidden import probe_manifest
 
     rng = np.random.default_rng(seed)
     # a prime line first: the two printers start their extruder's state differently (the
     # library's dead band pushed forward, this one's in the middle of its play), and no
     # real print's starting state is known either; its purge line sets it
-    man = probe_manifest(prime_mm=PRIME_MM, **PROBE_KW[PROBE])
+    man = probe_manifest(prime_mm=PRIME_MM, reference=reference, **PROBE_KW[PROBE])
     tau = 0.35 * float(np.exp(0.2 * rng.standard_normal()))
     p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN.get(hidden, {}).items()}
     return rng, man, tau, p
@@ -259,16 +267,21 @@ class RenderedForeignCase(ForeignCase):
 
 def render_foreign_case(hidden: str, seed: int = 0, camera: str = "flatbed", realism: str = "all",
                         plate: str = "dark", plastic: str = "opaque", dpi: float = 600.0,
-                        tilt_deg: float = 35.0) -> RenderedForeignCase:
+                        tilt_deg: float = 35.0, reference: bool | None = None) -> RenderedForeignCase:
     """The probe print of :func:`make_foreign_case` (the same draws of tau and the effect),
     pictured by measure/render.py with ``realism`` (measure/phenomena.py; strings and raster
     gaps from this printer's own outflow) and measured by measure/pipeline.py with the pose
     given by eight points of the true camera (the probe has no markers; issue #11 item 4:
     "rendered with the realistic camera ... and measured by our pipeline").
 
+    ``reference`` (default REFERENCE): the probe prints the width reference every pattern
+    of ours prints (fit.hidden.probe_manifest), which the measurement calibrates the
+    apparent widths from, as it does on a user's print; without it they stay apparent.
+
     What the fit then sees is not this module's widths plus white noise but apparent
     widths: an edge offset of tens of um (no width reference on the probe, so not
-    calibrated: diagnose ``pa+scan_bias``, as `calib fit --model auto` starts), per-station
+    calibrated unless ``reference``; the diagnosis starts where `calib fit --model auto`
+    would, fit/measurement.py auto_start), per-station
     sds from the edge fits, flags. Stations within 1 mm of a planned stop are not used, as
     in make_foreign_case (the two printers lay a standing nozzle's blob differently)."""
     import os
@@ -280,7 +293,7 @@ def render_foreign_case(hidden: str, seed: int = 0, camera: str = "flatbed", rea
     from measure.pipeline import measure_scan
     from measure.render import render
 
-    _, man, tau, p = _draw(hidden, seed)
+    _, man, tau, p = _draw(hidden, seed, REFERENCE if reference is None else reference)
     rec: dict = {}
     a1, h1, smp = simulate(man, tau, hidden, p, ds_mm=0.25, margin_mm=0.0, record=rec)
     a0, h0, _ = simulate(man, tau, None, ds_mm=0.25, margin_mm=0.0)

@@ -77,11 +77,48 @@ def probe_printer() -> dict:
             "nozzle_land_length_mm": 0.6, "bowden_length_mm": 200.0}
 
 
+def _reference(emit, travel, t, e, pos, xa_mm, xb_mm, y_low_mm, tid, height_mm, printer, af):
+    """Print the width reference (patterns/builder.py ``reference_line``) between x =
+    ``xa_mm`` and ``xb_mm`` with its lowest pass at ``y_low_mm``, at its one volumetric flow
+    and each section's head speed, then retract; returns (t, e, pos, its Track)."""
+    from types import SimpleNamespace
+
+    from patterns.builder import REFERENCE_PASSES, REFERENCE_PITCH_MM, reference_line
+    from patterns.layout import tau_guess_s
+
+    prof = SimpleNamespace(**{k: printer.get(k, d) for k, d in (
+        ("filament_diameter_mm", 1.75), ("bowden_length_mm", 0.0), ("nozzle_land_length_mm", 0.6),
+        ("nozzle_diameter_mm", 0.4))})
+    ref = reference_line(xa_mm, xb_mm, y_low_mm + (REFERENCE_PASSES - 1) * REFERENCE_PITCH_MM, REFERENCE_PASSES,
+                         REFERENCE_PITCH_MM, prof.nozzle_diameter_mm, height_mm, tau_guess_s(prof))
+    pts, s_node, cuts = ref.points_mm, ref.s_node_mm, ref.cuts_mm
+    t = travel(t, pos, tuple(pts[0]))
+    # arc length against time: each section at its own speed, the extruder at one rate
+    t_cut = np.concatenate([[0.0], np.cumsum(np.diff(cuts) / np.asarray(ref.speeds_mm_s))])
+    tq = np.unique(np.concatenate([np.arange(0.0, t_cut[-1], 0.004), t_cut]))
+    sq = np.interp(tq, t_cut, cuts)
+    k = np.clip(np.searchsorted(t_cut, tq, side="right") - 1, 0, len(ref.speeds_mm_s) - 1)
+    vq = np.asarray(ref.speeds_mm_s)[k]
+    ve = ref.flow_mm3_s / af
+    emit(t + tq, np.interp(sq, s_node, pts[:, 0]), np.interp(sq, s_node, pts[:, 1]), vq,
+         np.full(len(tq), ve), e + ve * tq, tid, sq)
+    t, e = t + t_cut[-1], e + ve * t_cut[-1]
+    # the track's vertices: the path's, and a pair at each section's start (the width steps there)
+    s_v = np.unique(np.concatenate([s_node, cuts, cuts[1:-1] - 1e-4]))
+    kv = np.clip(np.searchsorted(cuts, s_v, side="right") - 1, 0, len(ref.widths_mm) - 1)
+    verts = np.column_stack([np.interp(s_v, s_node, pts[:, 0]), np.interp(s_v, s_node, pts[:, 1])])
+    track = Track(id=tid, kind="prime", points_mm=verts, width_mm=np.asarray(ref.widths_mm)[kv],
+                  height_mm=height_mm, flow_mm3_s=ref.flow_mm3_s, z_mm=height_mm, group="width reference",
+                  params=ref.params())
+    return t, e, np.array(pts[-1]), track
+
+
 def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float = 0.2,
                    accel_mm_s2: float = 1500.0, stop_s=3.0, slow_mm_s: float = 20.0,
                    fast_mm_s=(30.0, 60.0, 100.0, 140.0), widths_mm=(0.40, 0.55, 0.70, 0.85),
                    gap_mm: float = 8.0, retract_mm: float = 1.0, prime_mm: float = 0.0,
-                   printer: dict | None = None, stop_at=0.65, stop_retract=False) -> Manifest:
+                   printer: dict | None = None, stop_at=0.65, stop_retract=False,
+                   reference: bool = False) -> Manifest:
     """The probe print described in the module docstring, as a Manifest with its timeline.
 
     ``stop_s`` (s) and ``stop_at`` (fraction of the track's length): the mid-track stop's
@@ -99,7 +136,14 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
     library's dead band starts pushed forward, another printer's may start in the middle
     of its play, and the probe's first track then read 0.58 mm apart at its start with the
     same physics (bench/foreign_printer.py, backlash 0.8 mm; 60 mm of prime: 0 um). Off by
-    default: data made by the library itself starts where the library does."""
+    default: data made by the library itself starts where the library does.
+    ``reference``: print, instead of the prime line, the width reference every pattern of
+    ours prints (patterns/builder.py ``reference_line``: a serpentine at one volumetric
+    flow in sections of 2.5 and 1 nozzle diameters, above the tracks), a track of kind
+    ``prime`` with id ``n_tracks`` that measure/calibrate.py calibrates a picture's
+    apparent widths from. Without it a picture's widths carry an unknown edge offset, and
+    a fit that frees it (``scan_bias``) also takes the part of a width-dependent effect
+    that looks like one (bench_discover_foreign's rendered rows)."""
     printer = dict(printer or probe_printer())
     af = filament_area_mm2(printer["filament_diameter_mm"])
     x0 = -length_mm / 2
@@ -140,6 +184,11 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
              np.full(nt, area * slow_mm_s / af), e + area * slow_mm_s * tq / af, -1, np.full(nt, np.nan))
         t, e = t + tq[-1], e + area * prime_mm / af
         pos = np.array([x0 + prime_mm, start[1]])
+        t, e = move_e(t, pos, -1.0)
+    ref_track = None
+    if reference:
+        t, e, pos, ref_track = _reference(emit, travel, t, e, pos, x0, x0 + length_mm,
+                                          y0 + n_tracks * gap_mm, n_tracks, height_mm, printer, af)
         t, e = move_e(t, pos, -1.0)
     stops = np.atleast_1d(np.asarray(stop_s, dtype=float))
     places = np.atleast_1d(np.asarray(stop_at, dtype=float))
@@ -206,6 +255,8 @@ def probe_manifest(n_tracks: int = 8, length_mm: float = 60.0, height_mm: float 
         # retract at the end, in place
         t, e = move_e(t, (xb, y), -1.0)
         pos = np.array([xb, y])
+    if ref_track is not None:
+        tracks.append(ref_track)
     arrays = {k: np.concatenate(v) for k, v in nodes.items()}
     # drop exact duplicate times at phase joins (keep the later node: its E is current)
     keep = np.concatenate([np.diff(arrays["t_s"]) > 1e-12, [True]])

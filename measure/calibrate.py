@@ -130,6 +130,9 @@ STREAK_TRUSTED = 1.0
 #: (600 dpi, Bowden, seeds 0-8) it read +0.9 to +2.7 um (RMS 2.0) from what the test tracks
 #: needed, where the sections' own sd said 0.7-0.8 um and the test tracks' d_streak 0.9-1.2.
 STREAK_MODEL_SD_MM = 0.0025
+#: A glare run and its flanks count in :func:`streak_consistency` only if the head passed
+#: them at speeds within this share of their median (a speed step at one width is a flow step).
+STREAK_SPEED_SPAN = 0.2
 #: On a photo at an angle (the image scale varies over the print by more than
 #: measure.register.PERSPECTIVE) the reference is read in one part of the picture and the
 #: test tracks in others, whose apparent widths differ (defocus, foreshortening, blur across
@@ -274,7 +277,8 @@ STREAK_CELL_EDGES_S = (0.0, 0.2, 0.4, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12
 STREAK_FLANK_S = 0.2
 
 
-def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak, valid, min_side: int = 3):
+def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak, valid, min_side: int = 3,
+                       speed_mm_s=None):
     """How the test tracks' glare-streak stations compare with the bead on either side of
     them (mm): (d_streak, d_plain, runs). A streak sits at some headings only, so on a spiral a track
     passes in and out of it: per run of glare stations along a track (in print order), a
@@ -294,7 +298,16 @@ def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak,
     same time since the width changed (cells 0-0.2-...-12 s, until 2026-11-30) still by -8 to
     -10 um on the glare-alone render (thermal ooze: the same phase of another step is another
     bead), which read d_streak -9.8 / -11.6 um where the streak model was within 2 um of the
-    truth, and took the bracket's middle (bias -5 to -6 um on seeds 0-8); the flanks: -1.5 / -1.2."""
+    truth, and took the bracket's middle (bias -5 to -6 um on seeds 0-8); the flanks: -1.5 / -1.2.
+
+    ``speed_mm_s``: the planned head speed at each station (mm/s), or None. Where given, a
+    run whose stations and flanks the head passed at speeds more than STREAK_SPEED_SPAN
+    apart (of their median) is left out: one commanded width at two speeds is two flows,
+    and a lagging extruder lays a bead that changes over the step whatever the picture. On
+    the diagnose bench's probe (bench/foreign_printer.py, each track slow for its first
+    quarter, then fast) the one long run counted sat in that transient, its bead growing
+    0.08 -> 0.27 mm, and read d_streak +106 um: the width reference's offset (right, -45 um
+    for -45) then carried +-106 um and was not applied."""
     track, t_s, streak = np.asarray(track), np.asarray(t_s, float), np.asarray(streak, bool)
     nominal_mm, width_mm = np.asarray(nominal_mm, float), np.asarray(width_mm, float)
     plain_width_mm = np.asarray(plain_width_mm, float)
@@ -314,6 +327,10 @@ def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak,
             run = np.arange(a0, a1 + 1)
             if np.ptp(nominal_mm[i][np.r_[before, run, after]]) > 0.005:
                 continue
+            if speed_mm_s is not None:
+                v = np.asarray(speed_mm_s, float)[i][np.r_[before, run, after]]
+                if not np.all(np.isfinite(v)) or np.ptp(v) > STREAK_SPEED_SPAN * np.median(v):
+                    continue
             side = np.r_[before, after]
             line = np.polyfit(t[side], w[side], 1)
             bead = np.polyval(line, t[run])

@@ -269,8 +269,10 @@ def apparent_width_calibration(gray, color, manifest, reg, blur_prior_px=None, t
     if tm is not None and len(nominal) == len(tm.table):
         t = tm.table
         if in_glare and tm.glare_streak is not None:
+            tl = manifest.timeline
+            speed = (np.interp(t.t_s, tl.t_s, tl.v_mm_s) if tl is not None and len(tl.t_s) > 1 else None)
             check = streak_consistency(t.track, t.t_s, nominal, t.width_mm, tm.plain_width_mm,
-                                       tm.glare_streak, t.valid)
+                                       tm.glare_streak, t.valid, speed_mm_s=speed)
         if ok.any():
             heading = heading_shift(t.track, t.s_mm, t.t_s, nominal, t.width_mm, t.valid, tm.nx, tm.ny,
                                     smp.nx[ok], smp.ny[ok])

@@ -47,6 +47,84 @@ FURNITURE_SPEED_MM_S = 20.0     # fiducials, labels, ruler: slow enough to stick
 HOP_SPEED_MM_S = 60.0           # zero-extrusion hops between strokes of one track
 LABEL_HEIGHT_MM = 3.5
 
+@dataclass(frozen=True)
+class ReferenceLine:
+    """The width-reference prime line's geometry and schedule (:func:`reference_line`).
+
+    points_mm (N, 2) path vertices; s_node_mm (N,) their arc length (mm); cuts_mm: arc
+    lengths where the lead-in and each section begin and the last ends (mm);
+    widths_mm / speeds_mm_s: commanded width (mm) and head speed (mm/s) of the lead-in and
+    each section; sections_mm [[s0, s1, w]] (mm) the measured sections; straight_mm
+    [[s0, s1]] the straight passes; flow_mm3_s the one volumetric flow; settle_s the
+    settling time each section is designed for (s)."""
+
+    points_mm: np.ndarray
+    s_node_mm: np.ndarray
+    cuts_mm: np.ndarray
+    widths_mm: list
+    speeds_mm_s: list
+    sections_mm: list
+    straight_mm: list
+    flow_mm3_s: float
+    settle_s: float
+
+    def params(self) -> dict:
+        """The track params measure/calibrate.py reads the reference by."""
+        return {"role": "width_reference", "sections_mm": self.sections_mm, "straight_mm": self.straight_mm,
+                "flow_mm3_s": float(self.flow_mm3_s), "settle_s": float(self.settle_s),
+                "speed_mm_s": [float(v) for v in self.speeds_mm_s[1:]]}
+
+
+def reference_line(xa_mm: float, xb_mm: float, y_top_mm: float, n_pass: int, pitch_mm: float,
+                   nozzle_mm: float, height_mm: float, tau_s: float) -> ReferenceLine:
+    """The width reference of :meth:`PatternBuilder.frame_prime` between x = ``xa_mm`` and
+    ``xb_mm`` (the turns included), its first pass at ``y_top_mm`` and ``n_pass`` passes
+    ``pitch_mm`` apart downwards; sections REFERENCE_WIDTHS_DN x ``nozzle_mm`` wide at
+    one volumetric flow, each lasting settle + REFERENCE_MEASURE_S, settle =
+    REFERENCE_SETTLE_TAUS x ``tau_s`` (the pressure time constant guess, s), at least
+    REFERENCE_SETTLE_MIN_S (frame_prime's docstring says why)."""
+    r = pitch_mm / 2
+    xa, xb = xa_mm + r, xb_mm - r
+    # alternating direction, half-circle turns outside [xa, xb]
+    path, straight = [], []
+    s = 0.0
+    for k in range(n_pass):
+        y = y_top_mm - k * pitch_mm
+        a_, b_ = (xa, xb) if k % 2 == 0 else (xb, xa)
+        if k:
+            yc, side = y + r, (1.0 if k % 2 == 1 else -1.0)
+            xc = a_
+            ang = np.linspace(0.5 * np.pi, -0.5 * np.pi, REFERENCE_TURN_SEGMENTS + 1)[1:]
+            turn = np.column_stack([xc + side * r * np.cos(ang), yc + r * np.sin(ang)])
+            s += np.pi * r
+            path.extend(turn)
+        else:
+            path.append(np.array([a_, y]))
+        straight.append([float(s), float(s + (xb - xa))])
+        path.append(np.array([b_, y]))
+        s += xb - xa
+    pts = np.array(path)
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    s_node = np.concatenate([[0.0], np.cumsum(seg)])
+    L = float(s_node[-1])
+
+    widths = [k * nozzle_mm for k in REFERENCE_WIDTHS_DN]
+    settle = max(REFERENCE_SETTLE_MIN_S, REFERENCE_SETTLE_TAUS * tau_s)
+    t_sec = settle + REFERENCE_MEASURE_S
+    durs = [REFERENCE_LEAD_S] + [t_sec] * len(widths)
+    ws = [widths[0]] + widths
+    inv_a = [1.0 / float(bead_area_mm2(w, height_mm)) for w in ws]
+    q = L / sum(d * ia for d, ia in zip(durs, inv_a))
+    q = min(q, REFERENCE_MAX_SPEED_MM_S / max(inv_a))      # no section faster than the cap
+    lengths = np.array([q * d * ia for d, ia in zip(durs, inv_a)])
+    lengths *= L / lengths.sum()        # a capped Q: the line still fills the band (longer sections)
+    cuts = np.concatenate([[0.0], np.cumsum(lengths)])
+    cuts[-1] = L
+    speeds = [q * ia for ia in inv_a]
+    sections = [[float(cuts[i + 1]), float(cuts[i + 2]), float(w)] for i, w in enumerate(widths)]
+    return ReferenceLine(pts, s_node, cuts, ws, speeds, sections, straight, float(q), float(settle))
+
+
 
 @dataclass
 class _Rec:
@@ -270,7 +348,6 @@ class PatternBuilder:
         REFERENCE_SETTLE_TAUS x the profile's pressure time constant guess, at least
         REFERENCE_SETTLE_MIN_S.
         """
-        from fit.geometry import bead_area_mm2
         from patterns.layout import tau_guess_s
 
         x0, _, x1, y1 = frame.rect_mm
@@ -282,50 +359,10 @@ class PatternBuilder:
         room = (y1 - 3.0) - (y1 - f + 1.0 + LABEL_HEIGHT_MM + 1.0 + w_max / 2)
         n_pass = int(min(REFERENCE_PASSES, 1 + max(0.0, room) // (w_max + 1.0)))
         pitch = min(REFERENCE_PITCH_MM, room / (n_pass - 1)) if n_pass > 1 else REFERENCE_PITCH_MM
-        r = pitch / 2
-        xa, xb = x0 + f + 4.0 + r, x1 - f - 4.0 - r
-        # alternating direction, half-circle turns outside [xa, xb]
-        path, straight = [], []
-        s = 0.0
-        for k in range(n_pass):
-            y = y1 - 3.0 - k * pitch
-            a_, b_ = (xa, xb) if k % 2 == 0 else (xb, xa)
-            if k:
-                yc, side = y + r, (1.0 if k % 2 == 1 else -1.0)
-                xc = a_
-                ang = np.linspace(0.5 * np.pi, -0.5 * np.pi, REFERENCE_TURN_SEGMENTS + 1)[1:]
-                turn = np.column_stack([xc + side * r * np.cos(ang), yc + r * np.sin(ang)])
-                s += np.pi * r
-                path.extend(turn)
-            else:
-                path.append(np.array([a_, y]))
-            straight.append([float(s), float(s + (xb - xa))])
-            path.append(np.array([b_, y]))
-            s += xb - xa
-        pts = np.array(path)
-        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        s_node = np.concatenate([[0.0], np.cumsum(seg)])
-        L = float(s_node[-1])
-
-        h = self.layer_height_mm
-        widths = [k * dn for k in REFERENCE_WIDTHS_DN]
-        settle = max(REFERENCE_SETTLE_MIN_S, REFERENCE_SETTLE_TAUS * tau_guess_s(self.profile))
-        t_sec = settle + REFERENCE_MEASURE_S
-        durs = [REFERENCE_LEAD_S] + [t_sec] * len(widths)
-        ws = [widths[0]] + widths
-        inv_a = [1.0 / float(bead_area_mm2(w, h)) for w in ws]
-        q = L / sum(d * ia for d, ia in zip(durs, inv_a))
-        q = min(q, REFERENCE_MAX_SPEED_MM_S / max(inv_a))      # no section faster than the cap
-        lengths = np.array([q * d * ia for d, ia in zip(durs, inv_a)])
-        lengths *= L / lengths.sum()        # a capped Q: the line still fills the band (longer sections)
-        cuts = np.concatenate([[0.0], np.cumsum(lengths)])
-        cuts[-1] = L
-        speeds = [q * ia for ia in inv_a]
-        sections = [[float(cuts[i + 1]), float(cuts[i + 2]), float(w)] for i, w in enumerate(widths)]
-        tid = self.begin("prime", pts[0], params={
-            "role": "width_reference", "sections_mm": sections, "straight_mm": straight,
-            "flow_mm3_s": float(q), "settle_s": float(settle),
-            "speed_mm_s": [float(v) for v in speeds[1:]]})
+        ref = reference_line(x0 + f + 4.0, x1 - f - 4.0, y1 - 3.0, n_pass, pitch, dn,
+                             self.layer_height_mm, tau_guess_s(self.profile))
+        pts, s_node, cuts, ws, speeds = ref.points_mm, ref.s_node_mm, ref.cuts_mm, ref.widths_mm, ref.speeds_mm_s
+        tid = self.begin("prime", pts[0], params=ref.params())
         # split the path at the section cuts; each piece at its section's width and speed
         for k in range(len(ws)):
             inside = (s_node > cuts[k] + 1e-9) & (s_node < cuts[k + 1] - 1e-9)

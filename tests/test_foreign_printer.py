@@ -50,10 +50,48 @@ def test_backlash_agrees_after_a_prime_line_and_not_without_one():
         assert _median_apart_mm(wf[rest], wl[rest], trk[rest]) < 0.002
 
 
+def test_probe_prints_the_width_reference_our_patterns_print():
+    """``reference=True``: the probe's prime is the patterns' width reference (a serpentine
+    of 2.5 and 1 nozzle sections at one volumetric flow), a track measure/calibrate.py reads
+    sections from, printed before the tracks and clear of them; the tracks' own timeline
+    is the default probe's, shifted by the reference's time."""
+    from fit.geometry import bead_area_mm2, filament_area_mm2
+    from measure.calibrate import reference_stations
+
+    plain = probe_manifest(n_tracks=4, length_mm=40.0, prime_mm=20.0)
+    man = probe_manifest(n_tracks=4, length_mm=40.0, prime_mm=20.0, reference=True)
+    ref = man.tracks[-1]
+    assert ref.kind == "prime" and ref.id == 4 and ref.params["role"] == "width_reference"
+    smp, section, since, settle = reference_stations(man)
+    widths = {round(float(w), 2) for w in smp.width_nominal_mm}
+    assert widths == {0.4, 1.0} and len(np.unique(section)) == 4 and np.all(since >= 0)
+    tl = man.timeline
+    on = tl.track == ref.id
+    af = filament_area_mm2(1.75)
+    # one extruder rate, each section at the head speed that lays its width at that flow
+    assert np.ptp(tl.ve_mm_s[on]) < 1e-9
+    q = tl.ve_mm_s[on][0] * af
+    for s0, s1, w in ref.params["sections_mm"]:
+        mid = on & (tl.s_mm > s0 + 1.0) & (tl.s_mm < s1 - 1.0)
+        assert np.allclose(tl.v_mm_s[mid] * bead_area_mm2(w, 0.2), q, rtol=1e-6)
+    # before every track, and >= 5 mm from any of them
+    first = min(np.min(tl.t_s[tl.track == k]) for k in range(4))
+    assert np.max(tl.t_s[on]) < first
+    test_xy = np.vstack([np.asarray(t.points_mm) for t in man.tracks[:4]])
+    assert np.min(ref.points_mm[:, 1]) - np.max(test_xy[:, 1]) >= 5.0
+    # the tracks as the default probe prints them, later by the reference's time
+    for k in range(4):
+        a, b = plain.timeline.track == k, tl.track == k
+        assert np.allclose(np.diff(plain.timeline.t_s[a]), np.diff(tl.t_s[b]))
+        assert np.allclose(plain.timeline.s_mm[a], tl.s_mm[b])
+
+
 def test_rendered_probe_is_measured_as_the_foreign_printer_laid_it():
     """render_foreign_case pictures the foreign widths with every phenomenon and measures
-    them with our pipeline: the widths read back with one edge offset (apparent widths)
-    and a scatter of a realistic flatbed, the pressure peaks at the track starts (1.2-1.4 mm
+    them with our pipeline: the widths read back calibrated by the probe's width reference
+    (the edge offset of every phenomenon, -40 to -50 um, taken off within its sd; session
+    60: the reference's glare check no longer counts a run the head slowed through) with
+    the scatter of a realistic flatbed, the pressure peaks at the track starts (1.2-1.4 mm
     on 0.4-0.85 mm lines) drawn as laid (a cap meant for the stop blobs once clipped them
     to twice the commanded width: 1.36 -> 0.8 mm, and the fit read a misfit the printer did
     not make)."""
@@ -62,11 +100,13 @@ def test_rendered_probe_is_measured_as_the_foreign_printer_laid_it():
     ok = t.valid & (tru > 0)
     err = t.width_mm[ok] - tru[ok]
     off = np.median(err)
-    assert c.figures["valid"] > 0.7 and c.figures["apparent"]
-    assert -0.08 < off < -0.01                                   # the edge offset of every phenomenon
+    cal = c.calibration
+    assert c.figures["valid"] > 0.7 and not c.figures["apparent"] and cal["applied"]
+    assert -0.06 < cal["offset_mm"] < -0.03                      # the edge offset of every phenomenon
+    assert abs(off) < max(3 * cal["offset_sd_mm"], 0.005) and cal["offset_sd_mm"] < 0.012
     assert np.percentile(np.abs(err - off), 90) < 0.025
     # away from the stops every width is the one laid (the bead's own wobble aside)
-    _, man, tau, p = fp._draw("bed", 0)
+    _, man, tau, p = fp._draw("bed", 0, fp.REFERENCE)
     a, h, smp = fp.simulate(man, tau, "bed", p, ds_mm=0.25, margin_mm=0.0)
     laid = dict(zip(zip(smp.track, np.round(smp.s_mm, 3)), bead_width_mm(np.maximum(a, 0.0), h)))
     stop = np.array([man.track(int(k)).params["stop_s_mm"] for k in t.track])

@@ -341,6 +341,32 @@ def test_a_reference_in_glare_takes_the_streak_model_only_when_the_test_tracks_v
             assert cal.offset_mm == pytest.approx(mid.offset_mm) and cal.offset_sd_mm == pytest.approx(mid.offset_sd_mm)
 
 
+def test_a_glare_run_across_a_speed_step_is_no_evidence_for_the_streak_model():
+    """One commanded width at two head speeds is two flows: a lagging extruder's bead changes
+    over the step, so its neighbours in time are no straight line through the glare run's
+    true bead. On the rendered diagnose probe a run that reached into the head's slowing for
+    the mid-track stop read d_streak +106 um and made the width reference's offset
+    +-106 um; given the planned speeds such a run is left out, and a run at one speed still
+    counts as before."""
+    from measure.calibrate import streak_consistency
+
+    t_s = np.arange(0.0, 6.0, 0.01)
+    speed = np.where(t_s < 2.0, 20.0, 60.0)
+    nominal = np.full(len(t_s), 0.5)
+    # the bead narrows at the step and grows back over 1 s; a 3 um streak-model error
+    true = 0.5 - 0.3 * np.exp(-np.clip(t_s - 2.0, 0.0, None) / 1.0) * (t_s >= 2.0)
+    streak = ((t_s > 1.9) & (t_s < 2.5)) | ((t_s > 4.5) & (t_s < 4.7))
+    width = true + 0.003 * streak
+    ok = np.ones(len(t_s), bool)
+    track = np.zeros(len(t_s), int)
+    d_all = streak_consistency(track, t_s, nominal, width, width + 0.01 * streak, streak, ok)
+    d_one = streak_consistency(track, t_s, nominal, width, width + 0.01 * streak, streak, ok, speed_mm_s=speed)
+    assert d_all[2] == 2 and d_one[2] == 1
+    assert abs(d_one[0] - 0.003) < 0.002          # the run at one speed: the streak model's own error
+    # the run over the step misses the bead by tens of um and, weighted by its length, leads
+    assert abs(d_all[0] - 0.003) > 0.02
+
+
 def test_settled_width_is_the_limit_of_an_exponential_approach():
     """Eq. (2) known answer: a(t) = 0.40 + 0.05 exp(-t / 1.4 s) sampled from 1 to 6 s with
     4 um noise: the limit within 2 sd (sd a few um), T near 1.4 s; the median of the
