@@ -80,7 +80,8 @@ def probe_printer() -> dict:
 def _reference(emit, travel, t, e, pos, xa_mm, xb_mm, y_low_mm, tid, height_mm, printer, af):
     """Print the width reference (patterns/builder.py ``reference_line``) between x =
     ``xa_mm`` and ``xb_mm`` with its lowest pass at ``y_low_mm``, at its one volumetric flow
-    and each section's head speed, then retract; returns (t, e, pos, its Track)."""
+    and each section's head speed; returns (t, e, pos) at its end (not retracted) and its
+    Track."""
     from types import SimpleNamespace
 
     from patterns.builder import REFERENCE_PASSES, REFERENCE_PITCH_MM, reference_line

@@ -304,9 +304,10 @@ def streak_consistency(track, t_s, nominal_mm, width_mm, plain_width_mm, streak,
     run whose stations and flanks the head passed at speeds more than STREAK_SPEED_SPAN
     apart (of their median) is left out: one commanded width at two speeds is two flows,
     and a lagging extruder lays a bead that changes over the step whatever the picture. On
-    the diagnose bench's probe (bench/foreign_printer.py, each track slow for its first
-    quarter, then fast) the one long run counted sat in that transient, its bead growing
-    0.08 -> 0.27 mm, and read d_streak +106 um: the width reference's offset (right, -45 um
+    the diagnose bench's rendered probe (bench/foreign_printer.py: each track slow for its
+    first quarter, then fast, then slowing into a mid-track stop) the one long run counted
+    lay in the bead's growth after the speed step (0.08 -> 0.27 mm) and reached into the
+    slowing for the stop; it read d_streak +106 um, and the width reference's offset (-45 um
     for -45) then carried +-106 um and was not applied."""
     track, t_s, streak = np.asarray(track), np.asarray(t_s, float), np.asarray(streak, bool)
     nominal_mm, width_mm = np.asarray(nominal_mm, float), np.asarray(width_mm, float)
