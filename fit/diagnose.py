@@ -25,8 +25,8 @@ import numpy as np
 from fit.compare import ModelFit, delta_elpd, fit_model, full_fit
 from fit.data import ScanData
 from fit.covariates import (CovariateScore, Covariates, advance_mm, aliases, compute_covariates,
-                            score_covariates)
-from fit.measurement import chi2_nu_expected, scatter
+                            score_covariates, track_demeaned)
+from fit.measurement import chi2_nu_expected, picture_widths, scatter
 from fit.trust import _bound_problem
 
 #: Effects never proposed as "missing": firmware_pa is a known input transform (it is
@@ -318,7 +318,10 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
         vals = base.params()
         theta = model.theta_from({k: vals[k] for k in model.param_names if k in vals})
         cov.values["advance_mm"] = advance_mm(model, theta, scan.ctx)[o]
-    scores = score_covariates(base.resid_mm, cov, track=smp.track[o], n_null=n_null, seed=seed)
+    # a picture's error is partly shared by whole tracks: score what varies within them
+    within = picture_widths(scan)
+    scores = score_covariates(base.resid_mm, cov, track=smp.track[o], n_null=n_null, seed=seed,
+                              within_tracks=within)
     # what a right model reads from the measurement alone: 1 for white noise of known sd,
     # 1.8-3.5 on the rendered probe prints (the scatter neighbours share), where chi2_nu >
     # 1.5 would call any fit a partial one
@@ -374,13 +377,15 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
         # what is still missing shows in what the best candidate leaves, not in the base
         # residuals (there the part it does explain dominates the covariate ranking)
         diag.covariates_after = score_covariates(ok[0].fit.resid_mm, cov, track=smp.track[o],
-                                                 n_null=n_null, seed=seed)
+                                                 n_null=n_null, seed=seed, within_tracks=within)
     _verdict(diag, command_prefix, effects_arg)
+    def read(resid):
+        return track_demeaned(resid, smp.track[o]) if within else resid
     if scores and scores[0].score > 0:
-        diag.top_aliases = aliases(base.resid_mm, cov, scores[0].name)
+        diag.top_aliases = aliases(read(base.resid_mm), cov, scores[0].name)
     if diag.named_covariate:
         resid = ok[0].fit.resid_mm if diag.named_from == "after" else base.resid_mm
-        diag.aliases = aliases(resid, cov, diag.named_covariate)
+        diag.aliases = aliases(read(resid), cov, diag.named_covariate)
         diag.verdict += alias_text(diag.named_covariate, diag.aliases)
     return diag
 

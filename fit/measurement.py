@@ -253,6 +253,17 @@ def scatter(scan, wobble_rel: float | None = None) -> dict:
             "chi2_nu_bead_expected": float((den + sh * sh) / den) if den > 0 else float("nan")}
 
 
+def picture_widths(scan) -> bool:
+    """Whether the widths of ``scan`` (fit.data.ScanData) were measured from a picture:
+    `calib measure` gives every station its edge blur and the part of its sd that is its
+    own (measure/table.py). Widths from elsewhere (a simulation with white noise, calipers)
+    have neither, and no error shared by a whole track (fit/covariates.py score_covariates
+    ``within_tracks``)."""
+    t = scan.table
+    return bool(np.isfinite(np.asarray(t.width_sd_own_mm, float)).any()
+                or np.isfinite(np.asarray(t.blur_mm, float)).any())
+
+
 def chi2_nu_expected(scan) -> float:
     """The reduced chi-square a right model reads on ``scan`` from its measurement alone,
     weighed as the fit weighs it (by each station's own sd, ``width_sd_own_mm``):

@@ -608,3 +608,61 @@ def test_the_probe_can_vary_its_stops_so_their_covariates_part():
     tsr = [float(cov["time_since_retract_s"][m][0]) for m in after]
     assert tsr[0] == pytest.approx(1.5 + tss[0], abs=0.05) and tsr[2] == pytest.approx(1.5 + tss[2], abs=0.05)
     assert tsr[1] > 4.0 + tss[1] + 40.0 * 0.5 / 30.0     # since the track start's retraction
+
+
+def test_within_tracks_the_picture_offsets_of_whole_tracks_do_not_name_the_speed():
+    """Measured widths carry an offset per track (the picture's light, focus and plate under
+    each track); where those offsets follow what differs between the tracks (here their
+    speed), the plain score names the speed. Scored within tracks, the cause that varies
+    along the tracks (the time since a stop) is named, and the track offsets explain
+    nothing."""
+    from fit.covariates import Covariates
+
+    rng = np.random.default_rng(7)
+    n_tr, n_per = 8, 200
+    track = np.repeat(np.arange(n_tr), n_per)
+    s = np.tile(np.arange(n_per) * 0.25, n_tr)
+    base_speed = np.repeat(rng.permutation(np.linspace(10.0, 45.0, n_tr)), n_per)
+    speed = base_speed * (1.0 + 0.1 * (s > 25.0))                # one speed step along each track
+    since = np.where(s < 30.0, s, s - 30.0) / 20.0                # a stop at 30 mm along each track
+    offset = -0.0012 * (base_speed - 25.0)                        # the picture's, per track (mm)
+    resid = offset + 0.015 * np.exp(-since / 0.3) + 0.003 * rng.standard_normal(len(track))
+    cov = Covariates({"speed_mm_s": speed, "time_since_stop_s": since,
+                      "t_s": np.arange(len(track)) * 0.05})
+    plain = score_covariates(resid, cov, track=track, n_null=100)
+    assert plain[0].name == "speed_mm_s"
+    within = {x.name: x for x in score_covariates(resid, cov, track=track, n_null=100, within_tracks=True)}
+    assert max(within, key=lambda k: within[k].score) == "time_since_stop_s"
+    assert within["time_since_stop_s"].p_value < 0.05
+    # the share is of all the residual variance, as the plain score's (diagnose's 10 % rule)
+    assert within["time_since_stop_s"].score < {x.name: x for x in plain}["time_since_stop_s"].score + 0.05
+
+
+def test_the_within_track_fit_is_the_two_way_least_squares_fit():
+    """_within_r2's alternating projections against the exact least squares of
+    r = a_track + g_bin (dummy columns), on bins that cut across the tracks unevenly."""
+    from fit.covariates import _within_r2
+
+    rng = np.random.default_rng(3)
+    n, nt, nb = 900, 6, 5
+    tid = rng.integers(0, nt, n)
+    idx = np.minimum(nb - 1, (rng.random(n) * nb * (0.6 + 0.4 * tid / nt)).astype(int))
+    r = rng.normal(0, 1, nt)[tid] + rng.normal(0, 1, nb)[idx] + 0.5 * rng.standard_normal(n)
+    X = np.column_stack([(tid == k).astype(float) for k in range(nt)]
+                        + [(idx == k).astype(float) for k in range(1, nb)])
+    fit = X @ np.linalg.lstsq(X, r, rcond=None)[0]
+    a = np.array([r[tid == k].mean() for k in range(nt)])[tid]
+    exact = (np.sum((r - a) ** 2) - np.sum((r - fit) ** 2)) / np.sum((r - r.mean()) ** 2)
+    got, g = _within_r2(r[None, :], idx, nb, tid, nt)
+    assert abs(got[0] - exact) < 1e-3 * exact
+    assert g.shape == (1, nb)
+
+
+def test_only_widths_measured_from_a_picture_are_scored_within_tracks():
+    from fit.measurement import picture_widths
+
+    c = make_case("thermal", seed=1, **FAST)
+    obs = observe(c.manifest, c.table)
+    assert not picture_widths(obs)
+    c.table.blur_mm = np.full(len(c.table.track), 0.03)
+    assert picture_widths(observe(c.manifest, c.table))
