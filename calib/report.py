@@ -73,17 +73,20 @@ def plot_tracks(scan, fits, out_dir) -> Path:
 
 
 def fig_covariate(diag, score):
-    """Residual (um) against one covariate with its binned-mean curve."""
-    from fit.covariates import COVARIATES
+    """Residual (um) against one covariate with its binned-mean curve; less each track's
+    mean where the diagnosis scored within tracks (widths measured from a picture)."""
+    from fit.covariates import COVARIATES, track_demeaned
     fig, ax = plt.subplots(figsize=(5, 3.2))
     x = diag.cov[score.name]
-    ax.plot(x, 1000 * diag.base.resid_mm, ".", ms=2, color=DATA_COLOUR, alpha=0.5)
+    within = diag.within_tracks and diag.track is not None
+    r = track_demeaned(diag.base.resid_mm, diag.track) if within else diag.base.resid_mm
+    ax.plot(x, 1000 * r, ".", ms=2, color=DATA_COLOUR, alpha=0.5)
     if score.bin_centres is not None and len(score.bin_centres):
         ax.plot(score.bin_centres, 1000 * np.asarray(score.bin_means), "o-", color=COLOURS[0])
     ax.axhline(0, color="k", lw=0.5)
     unit = COVARIATES.get(score.name, ("", ""))[0]
     ax.set_xlabel(f"{score.name} ({unit})")
-    ax.set_ylabel(f"residual of {diag.model} (um)")
+    ax.set_ylabel(f"residual of {diag.model}{' less its track mean' if within else ''} (um)")
     ax.set_title(f"{score.name}: score {score.score:.2f}", fontsize=9)
     fig.tight_layout()
     return fig

@@ -232,6 +232,11 @@ class Diagnosis:
     chi2_nu_expected: float = 1.0
     #: the same with the bead's own wobble allowed (fit/measurement.py scatter)
     chi2_nu_bead_expected: float = 1.0
+    #: covariates scored on what varies within each track (widths measured from a picture:
+    #: fit/covariates.py score_covariates ``within_tracks``)
+    within_tracks: bool = False
+    #: track id of each residual (the order of ``base.resid_mm``)
+    track: np.ndarray | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
         def num(x):
@@ -258,6 +263,7 @@ class Diagnosis:
                             "delta_elpd_loo_se": num(c.delta_elpd_loo_se),
                             "user": c.user, **({"error": c.error} if c.error else {})}
                            for c in self.candidates],
+            "covariates_within_tracks": self.within_tracks,
             "covariates": [{"name": s.name, "score": num(s.score), "r2": num(s.r2),
                             "p_value": num(s.p_value)} for s in self.covariates],
             "covariates_after": [{"name": s.name, "score": num(s.score), "r2": num(s.r2),
@@ -357,7 +363,8 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
             c.delta_elpd_loo, c.delta_elpd_loo_se = delta_elpd(c.fit, base)
 
     diag = Diagnosis(model=spec, base=base, covariates=scores, candidates=cands, cov=cov,
-                     chi2_nu_expected=expect, chi2_nu_bead_expected=bead_expect)
+                     chi2_nu_expected=expect, chi2_nu_bead_expected=bead_expect, within_tracks=within,
+                     track=smp.track[o])
     ok = [c for c in cands if np.isfinite(c.delta_bic) and c.fit is not None]
     twin = PICTURE_TWINS.get(ok[0].effect) if ok and ok[0].delta_bic > SUPPORTED_DELTA_BIC else None
     if twin is not None and twin in library and twin not in split_spec(spec):

@@ -666,3 +666,22 @@ def test_only_widths_measured_from_a_picture_are_scored_within_tracks():
     assert not picture_widths(obs)
     c.table.blur_mm = np.full(len(c.table.track), 0.03)
     assert picture_widths(observe(c.manifest, c.table))
+
+
+def test_a_diagnosis_of_measured_widths_says_it_scored_within_tracks():
+    from calib.commands.diagnose import format_diagnosis
+    from calib.report import fig_covariate
+
+    c = make_case("thermal", seed=1, **FAST)
+    c.table.blur_mm = np.full(len(c.table.track), 0.03)     # as `calib measure` writes them
+    obs = observe(c.manifest, c.table)
+    d = diagnose(obs, "pa", lambda s: build_model(s, c.manifest.printer), ["thermal"], n_null=30)
+    assert d.within_tracks and len(d.track) == len(d.base.resid_mm)
+    doc = d.to_json()
+    assert doc["covariates_within_tracks"] is True
+    assert "within each track" in format_diagnosis(doc)
+    fig = fig_covariate(d, d.covariates[0])
+    y = fig.axes[0].lines[0].get_ydata()
+    for t in np.unique(d.track):                      # the dots are each track's residuals less its mean
+        assert abs(np.mean(y[d.track == t])) < 1e-9
+    assert "less its track mean" in fig.axes[0].get_ylabel()
