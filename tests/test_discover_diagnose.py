@@ -638,6 +638,38 @@ def test_within_tracks_the_picture_offsets_of_whole_tracks_do_not_name_the_speed
     assert within["time_since_stop_s"].score < {x.name: x for x in plain}["time_since_stop_s"].score + 0.05
 
 
+def test_within_tracks_the_print_clocks_are_not_scored():
+    """Print time and filament fed count, within a track, only its own progress, and their
+    bins over the whole print nest in the tracks: with the track means out, they would fit a
+    level to each piece of a track, so each track's own trend (here the picture's light,
+    changing along every track its own way), and be named for it. Within tracks they score
+    0 (plain, as any covariate), and the cause that varies along every track alike is still
+    found."""
+    from fit.covariates import CLOCKS, Covariates
+
+    rng = np.random.default_rng(12)
+    n_tr, n_per = 8, 200
+    track = np.repeat(np.arange(n_tr), n_per)
+    s = np.tile(np.arange(n_per) * 0.25, n_tr)
+    t = np.arange(len(track)) * 0.05
+    slope = np.repeat(rng.choice([-1.0, 1.0], n_tr) * rng.uniform(0.5, 1.0, n_tr), n_per)
+    near = np.exp(-s / 3.0)                                       # every track's start
+    # the picture's light changing along each track its own way, a cause at every track's
+    # start, and a drift over the print (mm)
+    resid = (0.0006 * slope * (s - 25.0) + 0.01 * near + 0.0002 * t
+             + 0.002 * rng.standard_normal(len(track)))
+    cov = Covariates({"t_s": t, "e_mm": 0.03 * t, "s_mm": s, "a_copy_of_t_s": t})
+    plain = {x.name: x for x in score_covariates(resid, cov, track=track, n_null=100)}
+    assert plain["t_s"].score == plain["a_copy_of_t_s"].score      # scored as any covariate
+    within = {x.name: x for x in score_covariates(resid, cov, track=track, n_null=100, within_tracks=True)}
+    assert all(within[c].score == 0.0 and within[c].p_value == 1.0 for c in CLOCKS)
+    assert within["s_mm"].score > 0.0 and within["s_mm"].p_value <= 0.05
+    # what the rule keeps out: scored within tracks, the clock's bins take each track's own
+    # trend, many times what the cause along every track explains
+    assert within["a_copy_of_t_s"].p_value <= 0.05
+    assert within["a_copy_of_t_s"].score > 5 * within["s_mm"].score
+
+
 def test_the_within_track_fit_is_the_two_way_least_squares_fit():
     """_within_r2's alternating projections against the exact least squares of
     r = a_track + g_bin (dummy columns), on bins that cut across the tracks unevenly."""
