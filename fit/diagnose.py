@@ -24,7 +24,7 @@ import numpy as np
 
 from fit.compare import ModelFit, delta_elpd, fit_model, full_fit
 from fit.data import ScanData
-from fit.covariates import (CovariateScore, Covariates, advance_mm, aliases, compute_covariates,
+from fit.covariates import (CLOCKS, CovariateScore, Covariates, advance_mm, aliases, compute_covariates,
                             score_covariates, track_demeaned)
 from fit.measurement import chi2_nu_expected, picture_widths, scatter
 from fit.trust import _bound_problem
@@ -386,13 +386,16 @@ def diagnose(scan: ScanData, spec: str, build, library: list[str], user: list[st
         diag.covariates_after = score_covariates(ok[0].fit.resid_mm, cov, track=smp.track[o],
                                                  n_null=n_null, seed=seed, within_tracks=within)
     _verdict(diag, command_prefix, effects_arg)
-    def read(resid):
-        return track_demeaned(resid, smp.track[o]) if within else resid
+    def alias(resid, name):
+        if not within:
+            return aliases(resid, cov, name)
+        # the print's clocks are not scored within tracks (fit/covariates.py CLOCKS)
+        return [a for a in aliases(track_demeaned(resid, smp.track[o]), cov, name) if a[0] not in CLOCKS]
     if scores and scores[0].score > 0:
-        diag.top_aliases = aliases(read(base.resid_mm), cov, scores[0].name)
+        diag.top_aliases = alias(base.resid_mm, scores[0].name)
     if diag.named_covariate:
         resid = ok[0].fit.resid_mm if diag.named_from == "after" else base.resid_mm
-        diag.aliases = aliases(read(resid), cov, diag.named_covariate)
+        diag.aliases = alias(resid, diag.named_covariate)
         diag.verdict += alias_text(diag.named_covariate, diag.aliases)
     return diag
 

@@ -711,7 +711,9 @@ def test_a_diagnosis_of_measured_widths_says_it_scored_within_tracks():
     assert d.within_tracks and len(d.track) == len(d.base.resid_mm)
     doc = d.to_json()
     assert doc["covariates_within_tracks"] is True
-    assert "within each track" in format_diagnosis(doc)
+    assert "within each track" in format_diagnosis(doc) and "print time and E" in format_diagnosis(doc)
+    assert {c["name"]: c["score"] for c in doc["covariates"]}["t_s"] == 0.0
+    assert not {n for n, _ in [*d.top_aliases, *d.aliases]} & {"t_s", "e_mm"}
     fig = fig_covariate(d, d.covariates[0])
     y = fig.axes[0].lines[0].get_ydata()
     for t in np.unique(d.track):                      # the dots are each track's residuals less its mean

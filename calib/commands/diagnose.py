@@ -96,7 +96,8 @@ def format_diagnosis(doc: dict) -> str:
     out = [f"model {doc['model']}: RMS {1000 * doc['rms_mm']:.1f} um, reduced chi-square "
            f"{doc['chi2_nu']:.2f}", "", "residual structure (share of residual variance explained "
            "beyond chance" + ("; within each track, since a picture's error is partly shared by whole "
-                              "tracks" if doc.get("covariates_within_tracks") else "") + "):"]
+                              "tracks; print time and E, which within a track only count its progress, "
+                              "are not scored" if doc.get("covariates_within_tracks") else "") + "):"]
     for c in doc["covariates"][:6]:
         out.append(f"  {c['name']:<28} {c['score']:.3f}   (R^2 {c['r2']:.3f}, p {c['p_value']:.3g})")
     out += ["", "candidate effects (drop in BIC with the noise model of `calib fit`; RMS after):"]
