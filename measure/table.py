@@ -13,7 +13,8 @@ CSV columns (README "Widths CSV"):
     valid        1 if the sample may be fitted, 0 if not
     flag         empty, or the reason the sample is not valid (crossing, label, blob,
                  missing, glare, edge, fit, neighbour, end, isolated: a valid-looking
-                 station among failed fits, oblique: what was found runs across the
+                 station among failed fits, or a short run of them inside contamination
+                 reading another width than the bead around it, oblique: what was found runs across the
                  track, a string or another line, steep: the width changes along the
                  track faster than a strip can read, background: the plate beside the
                  bead is not the plate (a logo, a sticker), ...)

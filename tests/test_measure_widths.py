@@ -481,6 +481,43 @@ def test_a_valid_station_among_failed_fits_is_flagged_isolated():
     assert np.flatnonzero(two).tolist() == [22, 25]
 
 
+def test_a_short_valid_run_between_contaminated_stations_is_flagged():
+    """measure.widths.enclosed: stations every 0.25 mm on a 1.6 mm bead. The 35 deg phone
+    render's case: six valid stations read 2.2 mm between `background`+`steep` blocks
+    1.75 mm apart; those are flagged. Not flagged: a blob's plateau between `steep`
+    stations only (a real change of width), a run between flags 3.25 mm apart, a run
+    reading the bead's own width, a run bounded by a crossing (geometry, not a bad
+    profile) or by the track's end, and the same stations on another track."""
+    from measure.widths import ENCLOSED_DEVIATION_MM, ENCLOSED_MM, enclosed
+    s = np.arange(0, 40, 0.25)
+    flag = np.array([""] * len(s), dtype=object)
+    w = np.full(len(s), 1.6)
+    flag[[18, 19]] = "background"
+    flag[[20, 21]] = "steep"
+    w[22:28] = 2.2                                   # the logo's case: s 5.5-6.75
+    flag[28] = "steep"
+    flag[[29, 30]] = "background"
+    flag[[40, 47]] = "steep"                         # a blob: steep, plateau, steep
+    w[41:47] = 2.2
+    flag[[60, 73]] = "fit"                           # 3.25 mm apart
+    w[61:73] = 2.2
+    flag[[88, 95]] = "background"                    # the bead's own width between
+    w[89:95] = 1.62
+    flag[110], flag[117] = "crossing", "fit"
+    w[111:117] = 2.2
+    flag[150] = "glare"                              # the run after it reaches the end
+    w[151:] = 2.2
+    got = enclosed(np.zeros(len(s), int), s, flag, w)
+    assert np.flatnonzero(got).tolist() == list(range(22, 28))
+    assert (s[28] - s[21]) <= ENCLOSED_MM < s[73] - s[60]
+    assert abs(1.62 - 1.6) < ENCLOSED_DEVIATION_MM < 2.2 - 1.6
+    loose = enclosed(np.zeros(len(s), int), s, flag, w, deviation_mm=0.01)
+    assert np.flatnonzero(loose).tolist() == list(range(22, 28)) + list(range(89, 95))
+    two = enclosed(np.r_[np.zeros(len(s), int), np.ones(len(s), int)], np.r_[s, s],
+                   np.r_[flag, np.array([""] * len(s), dtype=object)], np.r_[w, w])
+    assert np.flatnonzero(two).tolist() == list(range(22, 28))
+
+
 def test_a_scan_without_glare_tries_one_station_in_eight_for_a_streak(flat, monkeypatch):
     """The glare streak fits cost more than the rest of the measurement (12 MP phone render:
     18.3 s -> 5.9 s). On a render without glare one station in STREAK_SCREEN_EVERY is tried,
