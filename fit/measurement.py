@@ -222,7 +222,7 @@ def scatter(scan, wobble_rel: float | None = None) -> dict:
 
     own_sd_mm     median sd the fit weighs each station by (``width_sd_own_mm``)
     shared_sd_mm  median sqrt(width_sd_mm^2 - own^2): the part of the calibrated sd
-                  (measure/widths.py ``calibrated_sd``: the widths' second differences
+                  (measure/station_sd.py ``calibrated_sd``: the widths' second differences
                   along the tracks) that neighbours share: plate texture, JPEG blocks,
                   glare, focus
     wobble_allowed_mm  WOBBLE_REL_MAX x the median width: the bead wobble chi2_nu_bead
@@ -271,7 +271,7 @@ def chi2_nu_expected(scan) -> float:
         E[chi2_nu] = mean_i (width_sd_i / own_i)^2
 
     ``width_sd_mm`` is calibrated on the widths' second differences along the tracks
-    (measure/widths.py ``calibrated_sd``): the scatter the stations share with their
+    (measure/station_sd.py ``calibrated_sd``): the scatter the stations share with their
     neighbours (plate texture, JPEG blocks, glare, the bead's own short wobble) as well as
     their own. 1 for widths with white noise of known sd; 1.8-3.5 on the foreign probe
     prints rendered on a 600 dpi flatbed with every phenomenon (bench_discover_foreign). A

@@ -501,7 +501,7 @@ def calibrate(width_mm, valid, nominal_mm, section, height_mm: float = 0.2,
 
     ``section_floor_mm``: an error each section has as a whole, added in quadrature to its
     sd (from its stations) in the fit of eq. (1): the scan's width scatter that its edge
-    fits do not explain (the floor f of measure/widths.py calibrated_sd, on the test
+    fits do not explain (the floor f of measure/station_sd.py calibrated_sd, on the test
     tracks). What makes it (uneven light, defocus, grain, a JPEG's quantisation, which
     depends on what each 8 px block holds) changes over the picture more slowly than along
     a station's neighbours, so a section's stations do not average it out, and the

@@ -33,7 +33,7 @@ EDGE_FIT_FAILED = ("fit", "isolated", "missing", "faint", "dropout")
 #: The width reference is "in glare" when more of its valid stations than this carry a streak.
 GLARE_REFERENCE_SHARE = 0.5
 #: A scan whose widths scatter this many times their edge fits' sd, or by this floor (mm),
-#: gets a warning line (measure/widths.py calibrated_sd: 1.05x and 3.3 um on a 600 dpi
+#: gets a warning line (measure/station_sd.py calibrated_sd: 1.05x and 3.3 um on a 600 dpi
 #: flatbed PNG render with every phenomenon, 3.0x and 8.5 um on its light-plate JPEG,
 #: ~2.1x on a 12 MP phone photo at 35 deg)
 NOISY_SD_SCALE = 2.0
@@ -176,7 +176,7 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
         "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
         # the edge fits' sd scaled and floored by the widths' own scatter along the tracks
-        # (measure/widths.py calibrated_sd); the fit's white term takes the own part
+        # (measure/station_sd.py calibrated_sd); the fit's white term takes the own part
         "station_sd": {"scale": round(meas.sd_scale, 3), "floor_mm": round(meas.sd_floor_mm, 5),
                        "own_mm_median": (float(np.median(table.width_sd_own_mm[ok])) if ok.any() else None)},
         "blur_plane_px": [float(v) for v in meas.blur_plane_px],

@@ -9,7 +9,7 @@ CSV columns (README "Widths CSV"):
     width_mm     measured bead width (mm); 0 where the bead is missing
     width_sd_mm  one-sigma uncertainty of width_mm (mm): the station's whole error, also the
                  part it shares with its neighbours within ~1 mm (plate grain, JPEG blocks,
-                 the edge model's misfit; measure/widths.py calibrated_sd)
+                 the edge model's misfit; measure/station_sd.py calibrated_sd)
     valid        1 if the sample may be fitted, 0 if not
     flag         empty, or the reason the sample is not valid (crossing, label, blob,
                  missing, glare, edge, fit, neighbour, end, isolated: a valid-looking

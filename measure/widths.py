@@ -16,15 +16,15 @@ sqrt(1 / min(1, step_px)) because profile samples closer than a pixel are not in
 times ``SD_CALIBRATION`` (set on renders so that ~68 % of true errors fall within
 width_sd_mm, bench/bench_measure.py), plus ``SD_FLOOR_PX`` in quadrature (edge model error);
 then per scan scaled and floored until it explains the scatter of the widths themselves
-about their smooth course (:func:`calibrated_sd`).
+about their smooth course (measure/station_sd.py :func:`calibrated_sd`).
 
-Glare: where a specular streak brightens one flank (measure/edges.py :func:`fit_streak`),
-the edge pair is refitted with the streak on either side and the better of the two replaces
-the plain fit when it explains significantly more: F = [(RSS_plain - RSS_streak) / 2] /
-[RSS_streak / (M - 7)] > ``STREAK_F``, and the streaks' sides agree with one light over the
-scan (``STREAK_COHERENCE``). Such stations stay valid (``glare_streak`` says which).
+Glare: where a specular streak brightens one flank, the edge pair is refitted with the
+streak on either side and the better of the two replaces the plain fit when it explains
+significantly more (measure/streaks.py). Such stations stay valid (``glare_streak`` says
+which).
 
-Stations are flagged, never silently used (valid = 0 and a reason): ``edge`` (profile leaves
+Stations are flagged, never silently used (valid = 0 and a reason; the rules that judge a
+station by its track's other stations are in measure/station_rules.py): ``edge`` (profile leaves
 the image), ``crossing`` / ``neighbour`` (another track touches the bead or sits inside
 the profile window, from the manifest geometry), ``label`` / ``fiducial`` / ``ruler``
 (the same for printed furniture), ``glare`` (over SATURATED_SHARE_MAX of the bead's pixels
@@ -45,10 +45,14 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import ndimage, optimize, special
+from scipy import ndimage, special
 from scipy.spatial import cKDTree
 
 from measure import edges
+from measure.station_rules import (beside_absence, dropouts, enclosed, isolated, oblique, steep,
+                                   unfit)
+from measure.station_sd import calibrated_sd, registration_place_sd, scatter_factor, slope_sd
+from measure.streaks import with_glare_streaks
 from measure.table import WidthTable
 from patterns.manifest import Manifest, Samples, sample_points
 
@@ -73,16 +77,6 @@ SD_CALIBRATION = 0.85
 #: (:func:`_despeckle`): the flat render's errors fell 1.2 -> 0.75 um RMS and 84 % lay
 #: within 0.015 px; now 72 %, the phone renders 66 and 65 % either way.)
 SD_FLOOR_PX = 0.010
-#: calibrated_sd: second differences over this arc length (mm), in this many bins of the
-#: formal variance, with the robust sd from this quantile of |d| (0.68: a little more of the
-#: tails than the median, still blind to the few steps and blobs of a track). The lag was
-#: 1 mm until the strips were despeckled: the despeckled station noise fell 3x on a
-#: flatbed render saved as JPEG 15, what its blocks share over a millimetre much less, and
-#: 1 mm left 53 % of its errors within their sd (62 % before); 2 mm gives 60 %, the
-#: bench_realism scenes within 0.02 of 1 mm's coverage.
-SD_LAG_MM = 2.0
-SD_BINS = 5
-SD_QUANTILE = 0.68
 #: Profile step (px) aimed for; the fit is insensitive below ~0.5 px.
 STEP_PX = 0.5
 #: Fewest background samples each side (mm) needed for a trustworthy edge fit.
@@ -90,61 +84,9 @@ MIN_BACKGROUND_MM = 0.2
 #: Widths (mm) the profile window is sized for are capped here: third-party G-code can
 #: command absurd widths (a restore move with a little XY motion reads as a 20 mm bead).
 MAX_WINDOW_WIDTH_MM = 3.0
-#: A station whose fit sd or relative residual exceeds this multiple of its track's median is flagged.
-OUTLIER_FACTOR = 4.0
-#: ... but a width whose sd is at most this (mm) is kept whatever its peers' sd: it carries
-#: its own weight. On 600 dpi renders with every phenomenon the peers' median sd was 1.6 um,
-#: so the rule flagged 1,009 stations of sd 7-18 um (12 % of the direct-drive scene, 10 %
-#: of the Bowden one) whose widths erred 9.6 um RMS (8.9 for the valid ones) with |error|
-#: > 3 sd on 0.8 %: honest widths, not contaminated profiles (those misfit: the residual
-#: rule stays). Kept up to 15 um.
-SD_OUTLIER_MIN_MM = 0.015
-#: A valid station is flagged "isolated" when fewer than ISOLATED_FRACTION of its track's
-#: stations within +-ISOLATED_HALF_MM (mm) are valid among those valid or flagged for a bad
-#: profile (:func:`isolated`). End-to-end render (seed 7, orange beads over light-grey
-#: plate logos): 5 stations 0.3-0.5 mm too wide, in stretches where 2 of 15 stations
-#: passed, took the fit to chi2_nu 61 and Kb 24x the truth; flagged, the scan's RMS error
-#: fell 24.9 -> 6.0 um (on the saved flatbed scene with every phenomenon, direct drive:
-#: 8.8 -> 5.4 um) for 1-2 % of the stations.
-ISOLATED_HALF_MM = 0.75
-ISOLATED_FRACTION = 0.4
-#: ... and when its run of valid stations lies inside contamination and reads another
-#: width than the bead around it (:func:`enclosed`): a logo or letter on the plate beside
-#: the bead, where it reaches the profile window's end, flags the station ``background``;
-#: where it lies inside the window next to the bead, the edge pair takes it for part of
-#: the bead and the window's ends see plain plate. On bench_realism's 35 deg phone photo
-#: (direct drive, seed 1) 6 stations of a 1.6 mm bead read 2.12-2.30 mm with sds of
-#: 15-25 um, between `background`+`steep` blocks 1.75 mm apart: 36 % of the scan's
-#: squared error. The run is bounded by stations at most ENCLOSED_MM apart (twice
-#: DROPOUT_REACH_MM, the span a dropout may have), with a contaminated flag in the block
-#: on each side, and its median differs from the median of the valid stations within
-#: ENCLOSED_REACH_MM by more than ENCLOSED_DEVIATION_MM. Without the width test (any run
-#: so bounded) the rule took 9 % of realdata StartStopTestPLA1's valid stations (47.8 ->
-#: 38.8 %), stations only 2x the scan's typical deviation; with it 1.2 points (46.6 %).
-ENCLOSED_MM = 2.0
-ENCLOSED_REACH_MM = 4.0
-ENCLOSED_DEVIATION_MM = 0.1
 #: Where a track coasts (commanded width 0), a bead wider than this times its reference
 #: width (+ 0.05 mm) is not its ooze but a blob (measure_widths)
 BLOB_COAST_FACTOR = 1.2
-#: A station within this (mm) of a station of its track that saw no bead (``missing``) has
-#: the bead's tip in its strip or its despeckling window (STRIP_MM / 2 + SPECK_MM / 2):
-#: flagged "end" (:func:`beside_absence`).
-TIP_REACH_MM = 0.35
-#: A station that saw no bead, with stations of its track that saw one within this (mm)
-#: before and after it, is a ``dropout`` (:func:`dropouts`): a misdetection, not an absence.
-#: A printer that stops and restarts the flow tapers the bead out and in again over the
-#: pressure's time constant at the head's speed (0.04 s at 20 mm/s is 0.8 mm, a Bowden's
-#: 0.8 s is 16 mm) plus a nozzle's width each way, so a bead it interrupted is gone for
-#: more than a millimetre. On bench_realism's 35 deg phone photos the narrowest beads
-#: (0.25 mm, 1.5 blurs wide) were called missing at 3-157 stations of six scenes, most
-#: one at a time between stations that showed them (dropouts now: 131 / 153 of 138 / 157
-#: on the direct drive's seeds 1 and 0); the fit took each for a bead narrower than a
-#: pixel, and those terms, independent of the wobble that ties the valid widths together,
-#: pulled the width offset 25-34 um too negative (widths after the fit's offset 30.8 /
-#: 31.9 um RMS; 26.3 / 20.8 with the dropouts; docs/MEASUREMENT.md, "A bead seen on both
-#: sides of a gap").
-DROPOUT_REACH_MM = 1.0
 #: A track's blur takes its own level about the picture's blur plane from at least this
 #: many of its stations in the blur-free pass (:func:`_learn_blur_plane`).
 TRACK_BLUR_MIN_STATIONS = 20
@@ -152,13 +94,6 @@ TRACK_BLUR_MIN_STATIONS = 20
 #: stations, from cells with this many wide beads or more (:func:`_relative_spread`).
 BLUR_SPREAD_CELLS = 20
 BLUR_SPREAD_PER_CELL = 15
-#: A station whose measured width changes faster than this along the track (mm/mm) is
-#: flagged "steep" (:func:`steep`). Over five flatbed scenes of the virtual printer at the
-#: truth (stop-mid-path direct drive and Bowden, spiral Bowden and direct drive,
-#: start-stop direct drive) the 0-44 such stations read 3.5-8.8 um RMS from the model
-#: through the measurement's kernel, the others 0.6-0.9 um; on the RetractTest the restore
-#: bulges read 12-24 um wide.
-STEEP_SLOPE = 0.2
 #: The blur is learned on stations at least this far (mm) from a bead end (measure_widths).
 BLUR_END_CLEAR_MM = 1.5
 #: A station is flagged "background" when the plate at either end of its profile window
@@ -184,16 +119,6 @@ BACKGROUND_SPREAD = 4.0
 #: path where 5 um of ooze was; the printed beads of that scan and of its StartStopTest lay
 #: within 0.04 of their widths.
 OFF_PATH = 0.5
-CONTAMINATED_FLAGS = ("fit", "glare", "blob", "oblique", "faint", "background")
-#: A valid station is flagged "oblique" when the fitted centres of its track's valid
-#: stations within +-ISOLATED_HALF_MM run across the track: slope |dc/ds| > OBLIQUE_SLOPE
-#: (8.5 deg) at more than OBLIQUE_T standard errors (:func:`oblique`). A string of ooze
-#: crossing a line that never printed passed as a 0.16 mm "bead" for 2.3 mm (slope 0.63,
-#: t 560-1550); over 45,000 printed stations of four scenes (flatbed strings, flatbed and
-#: phone with every phenomenon, light-plate JPEG) the largest was 0.29 (grain-jittered
-#: centres, t <= 23) and no printed station reached both.
-OBLIQUE_SLOPE = 0.15
-OBLIQUE_T = 50.0
 #: A bead whose amplitude is below this fraction of the track's typical one is missing.
 MISSING_FRACTION = 0.3
 #: ... but only where a bead would be seen: its expected amplitude (``a_ref``) at least this
@@ -218,43 +143,6 @@ SCAN_AMPLITUDE_FRACTION = 0.5
 #: the plate's to the beads'. Light-plate render: never-printed stations that passed in grey
 #: 0.00-0.13, printed ones >= 0.56 (0.25 mm) and >= 0.80 (0.5-1.6 mm).
 PRESENCE_FRACTION = 0.35
-#: F statistic above which a glare streak replaces the plain edge pair. Streak-free renders
-#: (bead profile shaded, no glare) give F <= 27 on 300 stations, median 0.8 (99th
-#: percentile 22); the streaks that bias the plain fit by +5..+12 um give F 300-600.
-STREAK_F = 30.0
-#: Streaks are believed only when at least this many stations show one and their sides,
-#: as bed directions, agree: |mean of side x normal| >= STREAK_COHERENCE (glare renders
-#: 0.91-0.95; edge-model misfit on translucent or phone renders 0.03-0.49).
-STREAK_MIN_STATIONS = 20
-STREAK_COHERENCE = 0.6
-#: A streak is looked for only on beads at least this many blurs wide: on a narrower one
-#: (a phone's 0.25 mm beads under 0.16 mm of blur, 1.6 blurs) the blurred streak is one more
-#: bump of the bead's own shape, and trades with its contrast and width (streak fits read
-#: those beads 52 um wide where the plain fit read -7 um; 0.5 mm beads, 3.2 blurs: -1 um).
-STREAK_MIN_BLURS = 2.5
-#: Streaks sit at one depth for the scan (:func:`_common_depth`) where the blur is wider than
-#: this many flank radii (h/2): below it the free depth is read station by station (600
-#: dpi flatbed, blur 0.03-0.05 mm for a 0.1 mm radius: one common depth moved the glare
-#: row's bias -2.7 -> -4.2 um and the Bowden's seed 0 +3.6 -> +6.8 um).
-STREAK_COMMON_BLUR = 1.0
-#: The streak's depth common to a scan (:func:`_common_depth`) is searched on this grid
-#: (fraction of the flank's radius h/2) over this many stations.
-STREAK_DEPTH_STEP = 0.05
-STREAK_DEPTH_SAMPLE = 400
-#: On scans with >= this x STREAK_MIN_STATIONS fitted stations, one in this many is tried
-#: for a streak first (:func:`_with_glare_streaks`).
-STREAK_SCREEN_EVERY = 8
-#: ... and the light those show is believed only beyond this many times the coherence n
-#: passes have with their sides at random (1 / sqrt(n)): a streak-free flatbed render,
-#: despeckled, had 2 of 181 pass on one side (coherence 1), then 5 at 0.6, and the full
-#: test ran for nothing (50 of 1446 passed, coherence 0.08). At 2.0, 4 of 4 on one side
-#: passed the bar (1.0; chance 1 in 8 on parallel tracks) and the full test ran again for
-#: nothing (42 passed, coherence 0.19); at 2.5 no n < 7 passes by chance.
-STREAK_SCREEN_CHANCE = 2.5
-#: ... and when those agree on the light this well, the others are tried on the side that
-#: faces it first (the screen's coherence was within 0.11 of the full test's on six
-#: renders' scans, 0.32-0.87).
-STREAK_SURE_COHERENCE = 0.7
 #: Each station's profile averages this many lines spread over this length (mm) along the
 #: track: the stations' spacing, so that every pixel row along a track is used once.
 STRIP_LINES = 5
@@ -406,7 +294,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
         wts = inside.astype(float)
         fit = edges.fit_profiles(t, y, p0, weights=wts)
     plain_w = fit.width.copy()
-    fit, streak = _with_glare_streaks(t, y, fit, wts, height, nrm)
+    fit, streak = with_glare_streaks(t, y, fit, wts, height, nrm)
 
     w = fit.width.copy()
     c = fit.centre.copy()
@@ -520,7 +408,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     # factor on the own part overstates the error of the noisiest stations (0.5 x on
     # bench_realism's all-phenomena scenes): the own part is no larger than the whole.
     rho = neighbour_corr(smp, t)
-    sd_own = sd * _scatter_factor(smp.track, w, sd, valid, rho)
+    sd_own = sd * scatter_factor(smp.track, w, sd, valid, rho)
     sd, sd_scale, sd_floor = calibrated_sd(smp.track, smp.s_mm, w, sd, valid)
     # steep beyond the widths' noise, as calibrated (a real photo's widths scatter more than
     # the edge fit says: on realdata StartStopTestPLA1 the fit's sds let 12.7 % of the valid
@@ -565,188 +453,6 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w),
                             sd_scale=sd_scale, sd_floor_mm=sd_floor, place_sd_mm=place_sd,
                             blur_rel_sd=float(blur_rel_sd), width_per_rel_blur_mm=per_rel_blur)
-
-
-def isolated(track, s_mm, flag, half_mm: float | None = None, fraction: float | None = None):
-    """Valid stations (flag "") in a stretch of contaminated ones (bool array): fewer than
-    ``fraction`` (ISOLATED_FRACTION) of the other stations of the same track within
-    +-``half_mm`` (ISOLATED_HALF_MM) are valid, counting only valid ones and those flagged
-    for a bad profile (CONTAMINATED_FLAGS: geometric flags such as a crossing, and missing
-    beads, say nothing of the profile). A bead over a plate logo lighter than the plate
-    failed the fit on most stations, and the few that passed had found the logo's edge."""
-    half_mm = ISOLATED_HALF_MM if half_mm is None else half_mm
-    fraction = ISOLATED_FRACTION if fraction is None else fraction
-    track, s_mm, flag = np.asarray(track), np.asarray(s_mm, float), np.asarray(flag, dtype=object)
-    out = np.zeros(len(track), bool)
-    for t in np.unique(track):
-        idx = np.flatnonzero(track == t)
-        idx = idx[np.argsort(s_mm[idx], kind="stable")]
-        s = s_mm[idx]
-        v = (flag[idx] == "").astype(float)
-        bad = np.isin(flag[idx], CONTAMINATED_FLAGS).astype(float)
-        cv, cb = np.concatenate([[0.0], np.cumsum(v)]), np.concatenate([[0.0], np.cumsum(bad)])
-        lo = np.searchsorted(s, s - half_mm, "left")
-        hi = np.searchsorted(s, s + half_mm, "right")
-        n_valid = cv[hi] - cv[lo] - v
-        n = n_valid + cb[hi] - cb[lo]
-        out[idx] = (v > 0) & (n > 0) & (n_valid < fraction * n)
-    return out
-
-
-def enclosed(track, s_mm, flag, w_mm, gap_mm: float | None = None,
-             deviation_mm: float | None = None) -> np.ndarray:
-    """Valid stations (flag "") inside contamination that read another width than the bead
-    around them (bool array). A run of valid stations is taken when, on its track,
-    - the stations flagged on each side of it are flagged for a bad profile
-      (CONTAMINATED_FLAGS or ``steep``), the two at most ``gap_mm`` (ENCLOSED_MM) apart,
-    - each side's block of such stations holds one of CONTAMINATED_FLAGS (``steep`` alone
-      is a real change of width: a blob up and down again is steep-plateau-steep), and
-    - the run's median width differs by more than ``deviation_mm`` (ENCLOSED_DEVIATION_MM)
-      from the median of at least three valid stations outside it within ENCLOSED_REACH_MM.
-    Geometric flags (a crossing, a neighbour, a bead's end) and absences bound nothing;
-    without valid stations around, nothing says the run is wrong and it is kept."""
-    gap_mm = ENCLOSED_MM if gap_mm is None else gap_mm
-    deviation_mm = ENCLOSED_DEVIATION_MM if deviation_mm is None else deviation_mm
-    track, s_mm = np.asarray(track), np.asarray(s_mm, float)
-    flag, w_mm = np.asarray(flag, dtype=object), np.asarray(w_mm, float)
-    bounds = CONTAMINATED_FLAGS + ("steep",)
-    out = np.zeros(len(track), bool)
-    for t in np.unique(track):
-        idx = np.flatnonzero(track == t)
-        idx = idx[np.argsort(s_mm[idx], kind="stable")]
-        s, f, w = s_mm[idx], flag[idx], w_mm[idx]
-        v = f == ""
-        bound = np.isin(f, bounds)
-        dirty = np.isin(f, CONTAMINATED_FLAGS)
-        edges = np.diff(np.r_[0, v.astype(np.int8), 0])
-        for i, j in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
-            if i == 0 or j == len(idx) or not (bound[i - 1] and bound[j]) or s[j] - s[i - 1] > gap_mm:
-                continue
-            a = i - 1                                      # the blocks of bounds each side
-            while a > 0 and bound[a - 1]:
-                a -= 1
-            b = j
-            while b + 1 < len(idx) and bound[b + 1]:
-                b += 1
-            if not (dirty[a:i].any() and dirty[j:b + 1].any()):
-                continue
-            mid = 0.5 * (s[i] + s[j - 1])
-            around = v & (np.abs(s - mid) <= ENCLOSED_REACH_MM)
-            around[i:j] = False
-            if around.sum() >= 3 and abs(np.median(w[i:j]) - np.median(w[around])) > deviation_mm:
-                out[idx[i:j]] = True
-    return out
-
-
-def steep(track, s_mm, w_mm, sd_mm=None, max_slope: float | None = None) -> np.ndarray:
-    """Stations where the measured width changes faster than ``max_slope`` (STEEP_SLOPE, mm
-    of width per mm of track; central differences along the track, NaN as 0) by more than
-    two sds of that difference (from the widths' sds ``sd_mm``): the strip then holds
-    widths ``max_slope`` x STRIP_MM apart, whose mean profile's edge pair is not their
-    mean width, and the outline the picture shows is the union of the bead's round
-    footprints, wider than the width by ~w'^2 / 8 of it (the envelope of circles). Where
-    the widths are noisy (a phone photo of a real print: sds of 20-60 um) the noise's
-    slope is not a steep bead, and a bias of a few um is well inside the sd."""
-    max_slope = STEEP_SLOPE if max_slope is None else max_slope
-    track, s_mm = np.asarray(track), np.asarray(s_mm, float)
-    w = np.nan_to_num(np.asarray(w_mm, float))
-    var = np.zeros(len(w)) if sd_mm is None else np.nan_to_num(np.asarray(sd_mm, float), nan=0.0) ** 2
-    out = np.zeros(len(track), bool)
-    for t in np.unique(track):
-        idx = np.flatnonzero(track == t)
-        if len(idx) < 2:
-            continue
-        idx = idx[np.argsort(s_mm[idx], kind="stable")]
-        s = s_mm[idx]
-        if np.any(np.diff(s) <= 0):
-            continue
-        v = var[idx]
-        # central difference (w[j+1] - w[j-1]) / (s[j+1] - s[j-1]); one-sided at the ends
-        gap = np.r_[s[1] - s[0], s[2:] - s[:-2], s[-1] - s[-2]] if len(s) > 2 else np.full(len(s), s[1] - s[0])
-        v_pair = np.r_[v[0] + v[1], v[2:] + v[:-2], v[-1] + v[-2]] if len(s) > 2 else np.full(len(s), v.sum())
-        out[idx] = np.abs(np.gradient(w[idx], s)) - 2.0 * np.sqrt(v_pair) / gap > max_slope
-    return out
-
-
-def beside_absence(track, s_mm, absent, reach_mm: float | None = None) -> np.ndarray:
-    """Stations within ``reach_mm`` (TIP_REACH_MM) of an ``absent`` station of the same
-    track (bool array): where a bead fades out or in, the strip of the last station that
-    sees it holds the tip, a sliver whose edge pair reads wider than the sliver. The
-    virtual direct drive's RetractTest at the truth: 15 valid stations read 0.12-0.16 mm
-    where the bead, carried 0.3 mm past the commanded stop by the moving retraction, had
-    tapered to 0.0-0.08 mm (7.2 um RMS over the valid stations, every station beyond
-    40 um one of these), wherever the commanded stop's own reach (:func:`_at_end`) ended
-    before the bead did."""
-    reach_mm = TIP_REACH_MM if reach_mm is None else reach_mm
-    track, s_mm, absent = np.asarray(track), np.asarray(s_mm, float), np.asarray(absent, bool)
-    out = np.zeros(len(track), bool)
-    for t in np.unique(track[absent]):
-        idx = np.flatnonzero(track == t)
-        s_abs = np.sort(s_mm[idx][absent[idx]])
-        s = s_mm[idx]
-        k = np.clip(np.searchsorted(s_abs, s), 1, len(s_abs) - 1) if len(s_abs) > 1 else np.zeros(len(s), int)
-        d = np.abs(s - s_abs[k])
-        if len(s_abs) > 1:
-            d = np.minimum(d, np.abs(s - s_abs[k - 1]))
-        out[idx] = (d <= reach_mm) & ~absent[idx]
-    return out
-
-
-def dropouts(track, s_mm, absent, seen, reach_mm: float | None = None) -> np.ndarray:
-    """``absent`` stations (bool array) with a ``seen`` station of the same track within
-    ``reach_mm`` (DROPOUT_REACH_MM) before *and* after them: a bead seen on both sides of a
-    gap shorter than a printer can leave in it (DROPOUT_REACH_MM) was there, and the
-    station that missed it misread the picture."""
-    reach_mm = DROPOUT_REACH_MM if reach_mm is None else reach_mm
-    track, s_mm = np.asarray(track), np.asarray(s_mm, float)
-    absent, seen = np.asarray(absent, bool), np.asarray(seen, bool)
-    out = np.zeros(len(track), bool)
-    for t in np.unique(track[absent]):
-        idx = np.flatnonzero(track == t)
-        s_seen = np.sort(s_mm[idx][seen[idx]])
-        if len(s_seen) < 2:
-            continue
-        i_abs = idx[absent[idx]]
-        s = s_mm[i_abs]
-        k = np.searchsorted(s_seen, s)          # s_seen[k - 1] < s <= s_seen[k]
-        before = np.where(k > 0, s - s_seen[np.maximum(k - 1, 0)], np.inf)
-        after = np.where(k < len(s_seen), s_seen[np.minimum(k, len(s_seen) - 1)] - s, np.inf)
-        out[i_abs] = (before <= reach_mm) & (after <= reach_mm)
-    return out
-
-
-def oblique(track, s_mm, centre_mm, ok, half_mm: float | None = None,
-            max_slope: float | None = None, min_t: float | None = None):
-    """Stations (bool array, among ``ok``) where what the edge fit found runs at an angle to
-    the track: the least-squares line through the centres (mm, along the normal) of the
-    ``ok`` stations of the same track within +-``half_mm`` of arc length has a slope over
-    ``max_slope`` (OBLIQUE_SLOPE) that is ``min_t`` (OBLIQUE_T) standard errors from 0.
-    A bead runs along its track (a misregistration shifts its centre slowly); a string or a
-    line crossing at an angle is a straight feature whose centre walks off at once."""
-    half_mm = ISOLATED_HALF_MM if half_mm is None else half_mm
-    max_slope = OBLIQUE_SLOPE if max_slope is None else max_slope
-    min_t = OBLIQUE_T if min_t is None else min_t
-    track, s_mm = np.asarray(track), np.asarray(s_mm, float)
-    c, ok = np.asarray(centre_mm, float), np.asarray(ok, bool) & np.isfinite(centre_mm)
-    out = np.zeros(len(track), bool)
-    for t in np.unique(track[ok]):
-        idx = np.flatnonzero((track == t) & ok)
-        idx = idx[np.argsort(s_mm[idx], kind="stable")]
-        s, y = s_mm[idx], c[idx]
-        # windowed sums give every station's local regression at once
-        cum = [np.concatenate([[0.0], np.cumsum(v)]) for v in (np.ones_like(s), s, y, s * s, s * y, y * y)]
-        lo = np.searchsorted(s, s - half_mm, "left")
-        hi = np.searchsorted(s, s + half_mm, "right")
-        n, sx, sy, sxx, sxy, syy = (q[hi] - q[lo] for q in cum)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            vxx = sxx - sx * sx / n
-            slope = (sxy - sx * sy / n) / vxx
-            rss = np.maximum(syy - sy * sy / n - slope * (sxy - sx * sy / n), 0.0)
-            se = np.sqrt(rss / np.maximum(n - 2, 1) / vxx)
-            # a perfectly straight feature has rss ~ 0: its t is large, not undefined
-            tval = np.abs(slope) / np.maximum(se, 1e-9)
-        out[idx] = (n >= 4) & (np.abs(slope) > max_slope) & (tval > min_t)
-    return out
 
 
 def background_shift(x_mm, y_mm, plate_ends, amp, ok) -> np.ndarray:
@@ -795,21 +501,6 @@ def plate_surface(x_mm, y_mm, values, ok, passes: int = 4) -> np.ndarray:
         mad = 1.4826 * float(np.median(np.abs(r[keep])))
         keep = ok & np.isfinite(values) & (np.abs(r) < 4 * max(mad, 1e-4))
     return A @ coef
-
-
-def unfit(width_cmd_mm, sd_mm, sd_ref_mm, rel_rms, rel_rms_ref):
-    """Stations whose edge fit is not to be trusted (bool array): a relative residual over
-    OUTLIER_FACTOR x its peers' (something else in the profile: a logo, a scratch, a
-    string), an sd over a quarter of the *commanded* width ``width_cmd_mm``, or an sd over
-    OUTLIER_FACTOR x its peers' that is also above SD_OUTLIER_MIN_MM (below it the width
-    carries its own weight). The bar is not the measured width: a narrow bead's sd grows
-    as it reads narrower (width and contrast trade off under the blur), so a quarter of the
-    measured width dropped the stations that erred narrow and kept those that erred wide
-    (phone render of a sparkling plate, 0.25 mm beads: mean error -4 um of the kept ones,
-    -14 um with the commanded width, against -45 um for 1.6 mm beads)."""
-    return ((sd_mm > 0.25 * np.maximum(width_cmd_mm, 0.1))
-            | (sd_mm > np.maximum(OUTLIER_FACTOR * sd_ref_mm, SD_OUTLIER_MIN_MM))
-            | (rel_rms > OUTLIER_FACTOR * rel_rms_ref))
 
 
 def _strip_profiles(gray, registration, t, smp: Samples, manifest, W, H, lines: int):
@@ -965,7 +656,7 @@ def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals,
                                   weights=wts.astype(float))
     # A glare streak makes its edge look sharp (the prime line, in glare all along on a
     # flatbed, read s 20 % small and the bead 10 um wide): the blur is read with it modelled.
-    fit1, _ = _with_glare_streaks(t[sub], y[sub], fit1, wts.astype(float), height_mm[sub], normals[sub],
+    fit1, _ = with_glare_streaks(t[sub], y[sub], fit1, wts.astype(float), height_mm[sub], normals[sub],
                                   fixed_s=False)
     blur_px = fit1.params[:, 5] * ppm_n[sub]
     ok1 = fit1.ok & usable[sub] & (fit1.width > 4 * fit1.params[:, 5])
@@ -1015,163 +706,6 @@ def _relative_spread(blur_px, model_px, ok, uv, cells: int = BLUR_SPREAD_CELLS,
     noise_var = np.mean((1.2533 * 1.4826 * np.median(np.abs(within))) ** 2 / counts[full])
     between = (1.4826 * np.median(np.abs(meds - np.median(meds)))) ** 2
     return float(np.sqrt(max(between - noise_var, 0.0)))
-
-
-def _with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True):
-    """The plain fit, with stations where a glare streak explains significantly more
-    (F > STREAK_F, module docstring) on the side that faces the scan's light replaced by
-    the streak fit; and which were. normals (N, 2): profile direction (bed frame).
-
-    The streak fits cost more than the rest of the measurement: on large scans one station
-    in STREAK_SCREEN_EVERY is tried first, on both sides, and when those show no coherent
-    light (under half the stations or half the coherence the full test needs) the scan has
-    no glare and the rest are not tried. When they show a light beyond doubt (coherence >=
-    STREAK_SURE_COHERENCE), the rest are tried on the side facing it, and on the other
-    side only where that one passes; in between, on both sides, since then the full test's
-    coherence decides (a light plate with every phenomenon: 0.32 on the screen, 0.28 on
-    all stations, no streaks; trying the facing side first made it 0.9 and the widths'
-    RMS 22 -> 40 um)."""
-    n = len(t)
-    streak = np.zeros(n, bool)
-    idx = np.flatnonzero(fit.ok & (fit.params[:, 4] >= STREAK_MIN_BLURS * fit.params[:, 5]))
-    if len(idx) == 0:
-        return fit, streak
-    k = STREAK_SCREEN_EVERY
-    light = None
-    if len(idx) >= k * STREAK_MIN_STATIONS:
-        sub = idx[::k]
-        use, _, toward = _streak_test(t, y, fit, wts, height_mm, normals, sub, fixed_s)
-        light = toward[use].mean(axis=0) if use.any() else np.zeros(2)
-        if (use.sum() < 0.5 * STREAK_MIN_STATIONS / k
-                or np.hypot(*light) < max(0.5 * STREAK_COHERENCE, STREAK_SCREEN_CHANCE / np.sqrt(use.sum()))):
-            return fit, streak
-        if np.hypot(*light) < STREAK_SURE_COHERENCE:
-            light = None
-    use, best, toward = _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light)
-    # One light lights one flank: the streak's side, as a bed direction (side x normal),
-    # points the same way at every station. Edge-model misfit that merely looks like a
-    # streak (translucent edges: 6 % of stations passed the F test, 57 % of those then
-    # outside 3 sd) picks its side at random.
-    light = toward[use].mean(axis=0) if use.sum() >= STREAK_MIN_STATIONS else np.zeros(2)
-    if np.hypot(*light) < STREAK_COHERENCE:
-        use[:] = False
-    else:
-        use &= toward @ light > 0
-    streak[idx[use]] = True
-    side = np.sign(np.einsum("ij,ij->i", toward, normals[idx]))
-    best = _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s)
-    params, sd, rms = fit.params.copy(), fit.sd.copy(), fit.rms.copy()
-    params[idx[use]] = best.params[use, :6]
-    sd[idx[use]] = best.sd[use, :6]
-    rms[idx[use]] = best.rms[use]
-    return edges.ProfileFit(params, sd, rms, fit.ok), streak
-
-
-def _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s):
-    """The streak fits ``best`` of the stations ``idx[use]`` (streak on ``side``, -1 / +1)
-    refitted with the streak's depth held at one value for the scan: one light over the
-    scan puts the highlight where the flank's slope is half its zenith angle, at one depth
-    (as a fraction of the flank's radius h/2). Each keeps its own depth unless at least
-    STREAK_MIN_STATIONS free fits ended inside the depth's bounds.
-
-    That depth maximises the joint likelihood of those stations (a subsample of
-    STREAK_DEPTH_SAMPLE), each with its own noise level: sum_i m_i ln RSS_i(d) is least,
-    over a grid of STREAK_DEPTH_STEP refined by a parabola through the least three.
-
-    Where the blur is wider than the flank (a phone's 0.16 mm against 0.1 mm), a free depth
-    trades with the edge: on a phone render (direct drive, seed 0) 80 % of the free streak
-    fits ended on a bound of the depth, those at 0.4 reading the beads 11-13 um narrow and
-    those at 1.0 scattering 64-100 um (0.5 and 1.6 mm beads), and the width's sd, with the
-    depth free in its covariance, 15x its peers': 70 % of the streak stations were
-    flagged. Held at 0.71 the streak stations read within 3 um of the others (6-9 um
-    RMS). Why not every streak station's likelihood: the renderer's shaded crown is
-    no edge pair, and the stations whose depth went to the bound pulled the common one
-    there too (0.40; the widths 10-14 um narrower than the stations without a streak).
-    Nor the median of the free depths: 0.77 on synthetic profiles whose depth is 0.70."""
-    on = np.flatnonzero(use & best.ok)
-    h = np.broadcast_to(np.asarray(height_mm, float), (len(t),))
-    if len(on) == 0 or np.median(fit.params[idx[on], 5]) <= STREAK_COMMON_BLUR * np.median(h[idx[on]]) / 2:
-        return best
-    lo, hi = edges.STREAK_FLANK
-    frac = best.params[on, 7] / (0.5 * h[idx[on]])
-    free = on[(frac > lo + STREAK_DEPTH_STEP / 5) & (frac < hi - STREAK_DEPTH_STEP / 5)]
-    if len(free) < STREAK_MIN_STATIONS:
-        return best
-
-    def refit(o, d):
-        out = edges.ProfileFit(np.full((len(o), 8), np.nan), np.full((len(o), 8), np.nan), np.full(len(o), np.nan),
-                               np.zeros(len(o), bool))
-        for sd_ in (-1.0, 1.0):
-            j = np.flatnonzero(side[o] == sd_)
-            if len(j):
-                i = idx[o[j]]
-                f = edges.fit_streak(t[i], y[i], fit.params[i], sd_, h[i], fixed_s=fixed_s, weights=wts[i],
-                                     flank=(d, d))
-                out.params[j], out.sd[j], out.rms[j], out.ok[j] = f.params, f.sd, f.rms, f.ok
-        return out
-
-    grid = np.arange(lo, hi + 1e-9, STREAK_DEPTH_STEP)
-    sub = free[:: max(1, len(free) // STREAK_DEPTH_SAMPLE)]
-    m = wts[idx[sub]].sum(axis=1)
-    rss = np.array([np.where(f.ok, f.rms ** 2 * np.maximum(m - 7, 1), np.nan)
-                    for f in (refit(sub, d) for d in grid)])
-    every = np.isfinite(rss).all(axis=0)
-    cost = (m[every] * np.log(np.maximum(rss[:, every], 1e-300))).sum(axis=1)
-    j = int(np.clip(np.argmin(cost), 1, len(grid) - 2))
-    c0, c1, c2 = cost[j - 1:j + 2]
-    curv = c0 - 2 * c1 + c2
-    d = float(np.clip(grid[j] + (0.5 * STREAK_DEPTH_STEP * (c0 - c2) / curv if curv > 0 else 0.0), lo, hi))
-    f = refit(on, d)
-    # a station whose held fit failed keeps its free one
-    on, f = on[f.ok], edges.ProfileFit(f.params[f.ok], f.sd[f.ok], f.rms[f.ok], f.ok[f.ok])
-    out = edges.ProfileFit(best.params.copy(), best.sd.copy(), best.rms.copy(), best.ok.copy())
-    out.params[on], out.sd[on], out.rms[on] = f.params, f.sd, f.rms
-    return out
-
-
-def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None):
-    """For the stations ``idx``: whether a streak passes the F test, the better side's fit,
-    and that side as a bed direction (side x normal). ``light`` (a bed direction): try the
-    side that faces it, and the other only where that one passes; None: both everywhere."""
-    n = len(idx)
-    m_eff = wts[idx].sum(axis=1)
-    k0 = 5 if fixed_s else 6
-    rss0 = fit.rms[idx] ** 2 * np.maximum(m_eff - k0, 1)
-    best_rss = np.full(n, np.inf)
-    best_side = np.zeros(n)
-    k = len(edges.STREAK_PARAMS)
-    best = edges.ProfileFit(np.full((n, k), np.nan), np.full((n, k), np.nan), np.full(n, np.nan), np.zeros(n, bool))
-
-    def try_sides(on, sides):
-        for side in (-1.0, 1.0):
-            o = on[sides == side]
-            if len(o) == 0:
-                continue
-            i = idx[o]
-            f = edges.fit_streak(t[i], y[i], fit.params[i], side, height_mm[i], fixed_s=fixed_s, weights=wts[i])
-            rss = np.where(f.ok, f.rms ** 2 * np.maximum(m_eff[o] - k0 - 2, 1), np.inf)
-            better = rss < best_rss[o]
-            j = o[better]
-            best_rss[j], best_side[j] = rss[better], side
-            best.params[j], best.sd[j] = f.params[better], f.sd[better]
-            best.rms[j], best.ok[j] = f.rms[better], f.ok[better]
-
-    def passes():
-        with np.errstate(invalid="ignore"):
-            F = 0.5 * (rss0 - best_rss) / np.maximum(best_rss / np.maximum(m_eff - k0 - 2, 1), 1e-300)
-        return np.isfinite(F) & (F > STREAK_F) & (best.params[:, 6] > 0)
-
-    every = np.arange(n)
-    if light is None:
-        try_sides(np.repeat(every, 2), np.tile([-1.0, 1.0], n))
-    else:
-        # the side facing the light first; the other only where that one passes, to see
-        # which explains more (misfit that merely looks like a streak fits either side)
-        facing = np.where(normals[idx] @ np.asarray(light, float) >= 0, 1.0, -1.0)
-        try_sides(every, facing)
-        cand = np.flatnonzero(passes())
-        try_sides(cand, -facing[cand])
-    return passes(), best, best_side[:, None] * normals[idx]
 
 
 def bead_ends_mm(track, step_mm: float = 0.05) -> np.ndarray:
@@ -1238,160 +772,6 @@ def _at_end(manifest, smp, w_meas, w_ref, blur_mm=None):
                                     + float(np.sqrt(r_blob ** 2 - (w_bead / 2) ** 2)))
                 out[on[near & (d < reach)]] = True
     return out
-
-
-def registration_place_sd(registration, xy_mm, tangent) -> np.ndarray:
-    """Along-track sd (mm) of where the registration puts each station (0 when it does not say)."""
-    f = getattr(registration, "place_sd_mm", None)
-    return np.zeros(len(xy_mm)) if f is None else np.nan_to_num(f(xy_mm, tangent))
-
-
-def slope_sd(track, s_mm, w_mm, sd_mm, valid, place_sd_mm, half_mm: float = 0.5,
-             k_sig: float = 3.0) -> np.ndarray:
-    """Width sd (mm) from not knowing where along its track a station is: |dw/ds| x
-    ``place_sd_mm`` (errors in the independent variable carried through the slope: the
-    effective-variance method, Orear 1982, Am. J. Phys. 50, 912).
-
-    The slope (mm/mm) is the larger of two estimates from the valid stations of the same
-    track: the least-squares line over +-``half_mm``, its square debiased by its variance
-    from the widths' sds (so that noise alone adds little: ~0.2 um per um of sd at a 0.2
-    mm place sd); and, where a width steps faster than that line can follow, the one-sided
-    differences to the neighbours that exceed ``k_sig`` sds of their two widths (the RMS
-    of the two sides: a step's corner station has a flat side and a steep one). 0 at
-    invalid stations and where ``place_sd_mm`` is 0 (markers hold the pose to ~0.01 mm).
-
-    Why: registered from point hints, the parallel tracks of the foreign printer's probe
-    (bench/foreign_printer.py) sat 0.04-0.24 mm off along their length (the pose's own
-    sd there: 0.08-0.28 mm), and the stations on the slow-to-fast width step (slope
-    0.4-0.6) read 25-105 um off with sds of 6-7 um: 63 % of a right model's chi2 on 1 %
-    of its stations."""
-    track, s = np.asarray(track), np.asarray(s_mm, float)
-    w, sd = np.asarray(w_mm, float), np.asarray(sd_mm, float)
-    place = np.asarray(place_sd_mm, float)
-    out = np.zeros(len(s))
-    ok = np.asarray(valid, bool) & np.isfinite(w) & np.isfinite(sd) & (place > 0)
-    for t in np.unique(track[ok]):
-        i = np.flatnonzero((track == t) & ok)
-        i = i[np.argsort(s[i], kind="stable")]
-        if len(i) < 2:
-            continue
-        ss, ww, vv = s[i] - s[i].mean(), w[i], sd[i] ** 2     # centred: the sums cancel less
-        # windowed least-squares slope and its variance sum((s_j - mean)^2 var_j) / Sxx^2,
-        # every station's window at once from cumulative sums
-        cum = [np.concatenate([[0.0], np.cumsum(v)])
-               for v in (np.ones_like(ss), ss, ww, ss * ss, ss * ww, vv, ss * vv, ss * ss * vv)]
-        lo = np.searchsorted(ss, ss - half_mm, "left")
-        hi = np.searchsorted(ss, ss + half_mm, "right")
-        n, sx, sy, sxx, sxy, sv, ssv, sssv = (q[hi] - q[lo] for q in cum)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = sx / n
-            vxx = sxx - sx * mean
-            g = (sxy - mean * sy) / vxx
-            var_g = (sssv - 2 * mean * ssv + mean * mean * sv) / vxx ** 2
-            g2 = np.where((n >= 3) & (vxx > 1e-12), np.maximum(g * g - var_g, 0.0), 0.0)
-        ds = np.maximum(np.diff(ss), 1e-6)
-        dw2 = np.diff(ww) ** 2
-        step = (dw2 > k_sig ** 2 * (vv[1:] + vv[:-1])) & (ds <= 2 * half_mm)
-        side = np.where(step, (dw2 - vv[1:] - vv[:-1]) / ds ** 2, 0.0)
-        both = (np.concatenate([[0.0], side]) + np.concatenate([side, [0.0]])) / 2
-        out[i] = np.sqrt(np.maximum(g2, both))
-    return out * np.where(ok, place, 0.0)
-
-
-def _scatter_factor(track, w, sd, valid, rho=None) -> float:
-    """Factor >= 1 on the fit sd so that it explains the observed station-to-station scatter:
-    the station's own error (``width_sd_own_mm``), what the fit's white term takes.
-
-    Second differences d2 = w[i-1] - 2 w[i] + w[i+1] along a track remove the smooth
-    (physical) width changes; for errors whose neighbours correlate by rho_i (station i with
-    i - 1; ``rho``, :func:`neighbour_corr`, None: 0) and no further, var(d2) =
-    (6 - 4 (rho_i + rho_(i+1))) sd^2: 6 sd^2 for independent ones, 2.4 sd^2 despeckled
-    (dividing by 6 there read the own error 1.6x small). The fit sd misses
-    correlated noise (JPEG blocks, texture), which shows up here. Robust (MAD) so steps
-    and blobs do not count.
-    """
-    same = (track[1:-1] == track[:-2]) & (track[1:-1] == track[2:])
-    ok = same & valid[1:-1] & valid[:-2] & valid[2:]
-    if ok.sum() < 30:
-        return 1.0
-    r = np.zeros(len(track)) if rho is None else np.asarray(rho, dtype=float)
-    d2 = ((w[:-2] - 2 * w[1:-1] + w[2:]) / np.sqrt(6.0 - 4.0 * (r[1:-1] + r[2:])))[ok]
-    observed = 1.4826 * np.median(np.abs(d2 - np.median(d2)))
-    predicted = np.median(sd[1:-1][ok])
-    return float(max(1.0, observed / predicted)) if predicted > 0 else 1.0
-
-
-def calibrated_sd(track, s_mm, w, sd, valid, lag_mm: float = SD_LAG_MM, bins: int = SD_BINS):
-    """Per-station sd (mm) rescaled so that it explains the scatter the scan itself shows:
-    sd' = sqrt((k sd)^2 + f^2), k >= 1, f >= 0 (mm). Returns (sd', k, f).
-
-    Second differences d_i = w(s_i - L) - 2 w(s_i) + w(s_i + L) along a track remove the
-    smooth (physical) width changes; for errors independent over L their variance is
-    v_i = sd(s_i - L)^2 + 4 sd(s_i)^2 + sd(s_i + L)^2 when the sds are right, and
-    k^2 v_i + 6 f^2 under the model. Stations are put in ``bins`` quantile bins of v; in
-    each the robust variance of d (``SD_QUANTILE`` of |d|, steps and blobs do not count)
-    gives one equation, and k^2 - 1 and f^2 come from non-negative least squares: a scale
-    where the errors grow with the formal sd, a floor where they do not. Never below the
-    edge fit's own sd (k, f = 1, 0 when the scatter is smaller or there are < 30 stations a bin).
-
-    Why a floor and a lag of L = ``SD_LAG_MM`` (1 mm then; 2 mm since the strips are
-    despeckled, see SD_LAG_MM), not one factor on adjacent stations:
-    on 600 dpi renders with every phenomenon (bench_realism) the errors are 3.4-7 um
-    whatever the formal sd (2-14 um) and correlated between neighbours (0.29-0.5 at
-    0.25 mm): one factor from adjacent stations (1.7) left the smallest-sd fifth's errors at
-    1.6 x their sd and the largest at 0.5 x; this gives 0.94 and 0.75 (k 1.05, f 3.3 um;
-    Bowden 0.89 and 0.78; light-plate JPEG 1.80 / 1.18 -> 1.33 / 1.19 with k 3.0, f 8.5 um).
-    """
-    track, s_mm, w, sd = (np.asarray(a) for a in (track, s_mm, w, sd))
-    valid = np.asarray(valid, dtype=bool)
-    triples = []                # (before, station, after) indices
-    for tid in np.unique(track[valid]):
-        on = np.flatnonzero((track == tid) & valid)
-        if len(on) < 3:
-            continue
-        on = on[np.argsort(s_mm[on], kind="stable")]
-        s = s_mm[on]
-        # the valid stations nearest L before and after (flags leave gaps in the grid)
-        a, b = _nearest(s, s - lag_mm), _nearest(s, s + lag_mm)
-        ok = (np.abs(s[a] - (s - lag_mm)) < 0.25 * lag_mm) & (np.abs(s[b] - (s + lag_mm)) < 0.25 * lag_mm)
-        triples.append(np.column_stack([on[a[ok]], on[ok], on[b[ok]]]))
-    if not triples or sum(len(x) for x in triples) < 30 * bins:
-        return sd, 1.0, 0.0
-    i, j, k_ = np.concatenate(triples).T
-    d = w[i] - 2 * w[j] + w[k_]
-    d = d - np.median(d)
-    v = sd[i] ** 2 + 4 * sd[j] ** 2 + sd[k_] ** 2
-    good = np.isfinite(d) & np.isfinite(v)
-    d, v = d[good], v[good]
-    if len(d) < 30 * bins:
-        return sd, 1.0, 0.0
-    c = 1.0 / special.ndtri(0.5 + SD_QUANTILE / 2)
-    edges_v = np.quantile(v, np.linspace(0.0, 1.0, bins + 1))
-    keep = np.ones(len(d), bool)
-    for _ in range(2):
-        A, y = [], []
-        for b0, b1 in zip(edges_v[:-1], edges_v[1:]):
-            m = (v >= b0) & (v <= b1) & keep
-            if m.sum() < 10:
-                continue
-            vm = np.mean(v[m])      # rows in units of their own variance: each bin counts alike
-            A.append([1.0, 6.0 / vm])
-            y.append((c * np.quantile(np.abs(d[m]), SD_QUANTILE)) ** 2 / vm - 1.0)
-        if len(A) < 2:
-            return sd, 1.0, 0.0
-        (k2m1, f2), _ = optimize.nnls(np.array(A), np.array(y))
-        # second pass without the flow steps and blobs the first one still counted (4 %
-        # of the stations of a track with one step 1 mm either side of it read k 1.02-1.07
-        # for 1.00): beyond 4 sd of the model they are not measurement error
-        keep = np.abs(d) <= 4.0 * np.sqrt((1.0 + k2m1) * v + 6.0 * f2)
-    k, f = float(np.sqrt(1.0 + k2m1)), float(np.sqrt(f2))
-    return np.sqrt((k * sd) ** 2 + f ** 2), k, f
-
-
-def _nearest(s, target):
-    """Index of the element of the sorted ``s`` nearest each ``target``."""
-    idx = np.clip(np.searchsorted(s, target), 1, len(s) - 1)
-    return np.where(np.abs(s[idx - 1] - target) <= np.abs(s[idx] - target), idx - 1, idx)
 
 
 # -- helpers -----------------------------------------------------------------------------

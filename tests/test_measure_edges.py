@@ -186,7 +186,7 @@ def test_under_a_phones_blur_the_streak_sits_at_one_depth_for_the_scan():
     the stations whose depth the data did fix: within 6 um. Beads under 2.5 blurs wide
     (0.25 mm) are not tried: there the blurred streak is a bump of the bead's own shape."""
     from measure.edges import fit_streak
-    from measure.widths import _with_glare_streaks
+    from measure.streaks import with_glare_streaks
 
     rng = np.random.default_rng(7)
     n, s = 600, 0.16
@@ -196,7 +196,7 @@ def test_under_a_phones_blur_the_streak_sits_at_one_depth_for_the_scan():
     y = (edge_pair(t, p) + 0.15 * np.exp(-0.5 * ((t - (w / 2 - 0.07)[:, None]) / s) ** 2)
          + rng.normal(0, 0.01, t.shape))
     plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
-    fit, streak = _with_glare_streaks(t, y, plain, np.ones_like(y), np.full(n, 0.2), np.tile([1.0, 0.0], (n, 1)))
+    fit, streak = with_glare_streaks(t, y, plain, np.ones_like(y), np.full(n, 0.2), np.tile([1.0, 0.0], (n, 1)))
     wide = w > 0.4
     assert streak[wide].all() and not streak[~wide].any()
     assert np.sqrt(np.mean((fit.width - w)[wide] ** 2)) < 0.006                   # mm
@@ -211,8 +211,8 @@ def test_streaks_are_believed_only_when_their_sides_agree_on_one_light(share_fac
     flank that faces +x, the rest on the other. All one way: one light, every streak fitted
     (the screen is sure of it, and the rest try that side first). 70/30: coherence 0.4, no
     single light, no streak believed; trying the screen's side first had let every station
-    agree with it (measure/widths.py STREAK_SURE_COHERENCE: a light plate read 22 -> 40 um)."""
-    from measure.widths import _with_glare_streaks
+    agree with it (measure/streaks.py STREAK_SURE_COHERENCE: a light plate read 22 -> 40 um)."""
+    from measure.streaks import with_glare_streaks
 
     rng = np.random.default_rng(7)
     n, s = 400, 0.04
@@ -225,7 +225,7 @@ def test_streaks_are_believed_only_when_their_sides_agree_on_one_light(share_fac
     y = edge_pair(t, p) + 0.2 * np.exp(-0.5 * ((t - cg[:, None]) / s) ** 2) + rng.normal(0, 0.005, t.shape)
     plain = fit_profiles(t, y, initial_guess(t, y, 1.0, s), fixed_s=True)
     normals = np.tile([1.0, 0.0], (n, 1))          # side +1 lies towards +x
-    fit, streak = _with_glare_streaks(t, y, plain, np.ones_like(y), np.full(n, 0.2), normals)
+    fit, streak = with_glare_streaks(t, y, plain, np.ones_like(y), np.full(n, 0.2), normals)
     if expect == "all":
         assert streak.mean() > 0.95
         assert np.sqrt(np.mean((fit.width - w)[streak] ** 2)) < 0.002      # mm

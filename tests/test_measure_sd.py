@@ -1,9 +1,9 @@
-"""The per-station sd, calibrated by the scan's own scatter (measure/widths.py calibrated_sd):
+"""The per-station sd, calibrated by the scan's own scatter (measure/station_sd.py calibrated_sd):
 recovery of a known scale and floor, blind to steps, never below the edge fit's sd."""
 import numpy as np
 import pytest
 
-from measure.widths import calibrated_sd
+from measure.station_sd import calibrated_sd
 
 
 def _tracks(rng, n_tracks=40, n=200, ds=0.25):
@@ -75,7 +75,7 @@ def test_the_fit_weighs_by_the_stations_own_sd_and_old_tables_still_read(tmp_pat
 
 
 def test_slope_term_is_the_slope_times_the_place_sd_and_nothing_on_a_flat_track():
-    from measure.widths import slope_sd
+    from measure.station_sd import slope_sd
 
     s = np.arange(0, 20, 0.25)
     track = np.zeros(len(s), int)

@@ -64,14 +64,14 @@ def gap_scene():
 
 def test_a_bead_seen_on_both_sides_of_a_short_gap_is_a_dropout_not_an_absence():
     """A station that sees no bead between stations of its track that see it within 1 mm
-    on either side misread the picture (measure/widths.py DROPOUT_REACH_MM): it is flagged
+    on either side misread the picture (measure/station_rules.py DROPOUT_REACH_MM): it is flagged
     ``dropout``, not data for the fit (its next neighbours are not measured either: their
     strips hold what hid it), and the bead beyond is measured; a 10 mm gap in the same picture stays ``missing``. (A printer cannot lay so short a
     gap, and the renderer's deposition cannot either: a 0.3 mm stretch of zero width is a
     notch of 16 um, 0.6 mm one of 75 um; so the misreading is made in the picture, a 0.6 mm
     band of the plate's grey across the bead. Without the rule its three stations are
     ``missing`` and their neighbours ``end``.)"""
-    from measure.widths import dropouts
+    from measure.station_rules import dropouts
     man, smp, long_, r = _gap_render()
     g = gray_of(r)
     # track 3 runs along x at y = 35 mm from x = 20: s = 40.25 mm lies at x = 60.25 mm
@@ -391,12 +391,13 @@ def test_a_never_printed_line_on_a_light_grained_plate_is_missing_by_its_colour(
     # leave few of them
     grey = measure_widths(g, man, reg, color=r.image).table
     assert grey.valid[gone].mean() < 0.05
-    old = mw.TIP_REACH_MM, mw.STEEP_SLOPE, mw.OFF_PATH
-    mw.TIP_REACH_MM, mw.STEEP_SLOPE, mw.OFF_PATH = 0.0, np.inf, np.inf
+    import measure.station_rules as sr
+    old = sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH
+    sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH = 0.0, np.inf, np.inf
     try:
         grey = measure_widths(g, man, reg, color=r.image).table
     finally:
-        mw.TIP_REACH_MM, mw.STEEP_SLOPE, mw.OFF_PATH = old
+        sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH = old
     assert grey.valid[gone].mean() > 0.1
 
 
@@ -419,12 +420,12 @@ def test_a_neighbour_closer_than_four_blurs_flags_the_station(blur_px, flagged):
 
 
 def test_a_width_with_a_larger_but_small_sd_is_kept_and_a_misfit_is_not():
-    """The fit-quality rule (measure.widths.unfit). Peers' median sd 1.6 um: a glare-streak
+    """The fit-quality rule (measure.station_rules.unfit). Peers' median sd 1.6 um: a glare-streak
     station fitted with the streak reads sd ~10 um with a residual like its peers' and an
     honest error (600 dpi renders, every phenomenon: 9.6 um RMS, 0.8 % beyond 3 sd); it was
     flagged for its sd alone (valid 87.7 %). Now it is kept up to SD_OUTLIER_MIN_MM; a larger
     sd, a misfitting profile or an sd above a quarter of the width still fail."""
-    from measure.widths import SD_OUTLIER_MIN_MM, unfit
+    from measure.station_rules import SD_OUTLIER_MIN_MM, unfit
     w = np.full(5, 0.5)
     sd_ref, rms_ref = np.full(5, 0.0016), np.full(5, 0.01)
     sd = np.array([0.0016, 0.010, SD_OUTLIER_MIN_MM * 1.5, 0.010, 0.2])
@@ -461,11 +462,11 @@ def test_the_fit_quality_bar_does_not_select_on_the_measured_width(monkeypatch, 
 
 
 def test_a_valid_station_among_failed_fits_is_flagged_isolated():
-    """measure.widths.isolated: stations every 0.25 mm. In a stretch of failed fits (a bead
+    """measure.station_rules.isolated: stations every 0.25 mm. In a stretch of failed fits (a bead
     over a plate logo) the two that passed are flagged; valid stations next to a crossing
     or a missing bead (flags that say nothing of the profile) and at the edge of the
     stretch (half their neighbours valid) are not."""
-    from measure.widths import isolated
+    from measure.station_rules import isolated
     s = np.arange(0, 20, 0.25)
     flag = np.array([""] * len(s), dtype=object)
     flag[(s >= 5) & (s < 8)] = "fit"
@@ -482,13 +483,13 @@ def test_a_valid_station_among_failed_fits_is_flagged_isolated():
 
 
 def test_a_short_valid_run_between_contaminated_stations_is_flagged():
-    """measure.widths.enclosed: stations every 0.25 mm on a 1.6 mm bead. The 35 deg phone
+    """measure.station_rules.enclosed: stations every 0.25 mm on a 1.6 mm bead. The 35 deg phone
     render's case: six valid stations read 2.2 mm between `background`+`steep` blocks
     1.75 mm apart; those are flagged. Not flagged: a blob's plateau between `steep`
     stations only (a real change of width), a run between flags 3.25 mm apart, a run
     reading the bead's own width, a run bounded by a crossing (geometry, not a bad
     profile) or by the track's end, and the same stations on another track."""
-    from measure.widths import ENCLOSED_DEVIATION_MM, ENCLOSED_MM, enclosed
+    from measure.station_rules import ENCLOSED_DEVIATION_MM, ENCLOSED_MM, enclosed
     s = np.arange(0, 40, 0.25)
     flag = np.array([""] * len(s), dtype=object)
     w = np.full(len(s), 1.6)
@@ -523,7 +524,7 @@ def test_a_scan_without_glare_tries_one_station_in_eight_for_a_streak(flat, monk
     18.3 s -> 5.9 s). On a render without glare one station in STREAK_SCREEN_EVERY is tried,
     and the widths are those of trying them all."""
     import measure.edges as me
-    import measure.widths as mw
+    from measure import streaks
     man, r, wm = flat
     g = gray_of(r)
     reg = register(g, man)
@@ -538,7 +539,7 @@ def test_a_scan_without_glare_tries_one_station_in_eight_for_a_streak(flat, monk
     screened = measure_widths(g, man, reg, color=r.image)
     n_screened = sum(tried)
     tried.clear()
-    monkeypatch.setattr(mw, "STREAK_SCREEN_EVERY", 10 ** 9)
+    monkeypatch.setattr(streaks, "STREAK_SCREEN_EVERY", 10 ** 9)
     full = measure_widths(g, man, reg, color=r.image)
     assert 0 < n_screened <= sum(tried) / 7
     assert not screened.glare_streak.any() and not full.glare_streak.any()
@@ -557,6 +558,7 @@ def test_a_string_crossing_a_line_that_never_printed_is_not_a_bead(monkeypatch):
     import copy
 
     import measure.widths as mw
+    from measure import station_rules
     from test_measure_synth import draw, flatbed
 
     man = scene_manifest()
@@ -575,17 +577,17 @@ def test_a_string_crossing_a_line_that_never_printed_is_not_a_bead(monkeypatch):
     tb = measure_widths(g, man, reg).table
     assert tb.valid[gone].sum() == 0 and np.isin(tb.flag[gone], ("oblique", "fit")).sum() >= 10
     assert (tb.flag[~gone] == "oblique").sum() == 0 and tb.valid[~gone].mean() > 0.95
-    monkeypatch.setattr(mw, "OBLIQUE_SLOPE", np.inf)          # the three rules are what keep them out
+    monkeypatch.setattr(station_rules, "OBLIQUE_SLOPE", np.inf)   # the three rules are what keep them out
     monkeypatch.setattr(mw, "OFF_PATH", np.inf)
     assert measure_widths(g, man, reg).table.valid[gone].sum() >= 10
 
 
 def test_oblique_needs_a_steep_and_straight_centre_line():
-    """measure.widths.oblique on centres every 0.25 mm: a slow registration drift (slope
+    """measure.station_rules.oblique on centres every 0.25 mm: a slow registration drift (slope
     0.01) and centres jittered by 40 um (grain) are beads; a straight feature at slope 0.6
     is not (the middle of it: near its ends the window holds both), nor one at 0.2 (11
     deg); 0.1 (6 deg) is let through."""
-    from measure.widths import oblique
+    from measure.station_rules import oblique
     rng = np.random.default_rng(0)
     s = np.arange(0, 30, 0.25)
     c = 0.01 * s + rng.normal(0, 0.002, len(s))
@@ -779,7 +781,7 @@ def test_start_stop_rings_read_the_model_where_the_bead_stops_starts_and_blobs(t
 
 
 def test_beside_absence_marks_the_stations_next_to_a_missing_one_on_the_same_track():
-    from measure.widths import beside_absence
+    from measure.station_rules import beside_absence
     track = np.array([1, 1, 1, 1, 1, 1, 2, 2, 2])
     s = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 0.0, 0.25, 0.5])
     absent = np.array([0, 0, 0, 1, 1, 0, 0, 0, 0], bool)
@@ -812,7 +814,7 @@ def test_retract_lines_read_the_model_where_the_moving_retraction_tapers_the_bea
 
 
 def test_steep_marks_where_the_width_changes_faster_than_the_slope_along_its_track():
-    from measure.widths import steep
+    from measure.station_rules import steep
     s = np.arange(0.0, 3.01, 0.25)
     w = np.where(s < 1.0, 0.5, 0.5 + 0.4 * (s - 1.0))     # a ramp of 0.4 mm/mm from s = 1 mm
     w[-3:] = 0.5                                            # then a drop of 0.5 mm in 0.25 mm

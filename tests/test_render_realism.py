@@ -605,7 +605,7 @@ def test_glare_streaks_are_modelled_per_station_and_leave_no_heading_bias(printe
     the apparent widths no longer depend on heading, and the offset from a reference in
     glare is a bracket whose sd holds the glare-free render's offset."""
     from calib.commands.simulate import simulate_scan
-    from measure import widths as mw
+    from measure import streaks
     from measure.pipeline import measure_scan
     from patterns.manifest import sample_points
 
@@ -632,7 +632,7 @@ def test_glare_streaks_are_modelled_per_station_and_leave_no_heading_bias(printe
     assert abs(heading) < 0.003
     assert cal["applied"] and cal["glare_bracket_mm"] is not None and cal["offset_sd_mm"] < 0.008
     assert abs(cal["offset_mm"] - clean["offset_mm"]) < 2 * cal["offset_sd_mm"]
-    monkeypatch.setattr(mw, "STREAK_F", np.inf)                            # the plain edge pair
+    monkeypatch.setattr(streaks, "STREAK_F", np.inf)                       # the plain edge pair
     _, heading_plain, _ = measured("profile,glare", "plain")
     assert heading_plain > 0.006
 
