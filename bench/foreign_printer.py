@@ -215,27 +215,29 @@ def simulate(manifest, tau_s: float, hidden: str | None, p: dict | None = None,
     return area, h_st, smp
 
 
-def _draw(hidden: str, seed: int, reference: bool = False):
+def _draw(hidden: str, seed: int, reference: bool = False, manifest=None):
     """(rng, probe manifest, tau_s, effect parameters) of a case: tau 0.35 s x lognormal(0.2),
     the effect's parameters within +-20 % of FOREIGN's (none for RIGHT_MODEL: the plain
     spring, dP/dt = ve - P / tau, which `pa` describes). ``reference``: the probe with the
-    width reference our patterns print (fit.hidden.probe_manifest)."""
+    width reference our patterns print (fit.hidden.probe_manifest). ``manifest``: another
+    print instead (e.g. patterns/probe.py's, planned from its G-code)."""
     from fit.hidden import probe_manifest
 
     rng = np.random.default_rng(seed)
     # a prime line first: the two printers start their extruder's state differently (the
     # library's dead band pushed forward, this one's in the middle of its play), and no
     # real print's starting state is known either; its purge line sets it
-    man = probe_manifest(prime_mm=PRIME_MM, reference=reference, **PROBE_KW[PROBE])
+    man = manifest or probe_manifest(prime_mm=PRIME_MM, reference=reference, **PROBE_KW[PROBE])
     tau = 0.35 * float(np.exp(0.2 * rng.standard_normal()))
     p = {k: v * float(1.0 + 0.2 * (2 * rng.random() - 1)) for k, v in FOREIGN.get(hidden, {}).items()}
     return rng, man, tau, p
 
 
-def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01) -> ForeignCase:
-    """The probe print (fit/hidden.py) on the foreign printer with ``hidden``, widths with
-    ``noise_mm`` of white measurement noise; the same stop blobs flagged as make_case."""
-    rng, man, tau, p = _draw(hidden, seed)
+def make_foreign_case(hidden: str, seed: int = 0, noise_mm: float = 0.01, manifest=None) -> ForeignCase:
+    """The probe print (fit/hidden.py; or ``manifest``'s) on the foreign printer with
+    ``hidden``, widths with ``noise_mm`` of white measurement noise; the same stop blobs
+    flagged as make_case."""
+    rng, man, tau, p = _draw(hidden, seed, manifest=manifest)
     a1, h1, smp = simulate(man, tau, hidden, p)
     a0, h0, _ = simulate(man, tau, None)
     w1 = np.asarray(bead_width_mm(np.maximum(a1, 0.0), h1))

@@ -425,9 +425,9 @@ class PatternBuilder:
 
 
 def _registry() -> dict:
-    from patterns import retract, spiral_step, start_stop, stop_mid_path
+    from patterns import probe, retract, spiral_step, start_stop, stop_mid_path
     return {"spiral-step": spiral_step.generate, "stop-mid-path": stop_mid_path.generate,
-            "retract": retract.generate, "start-stop": start_stop.generate}
+            "retract": retract.generate, "start-stop": start_stop.generate, "probe": probe.generate}
 
 
 class _Patterns(dict):

@@ -27,7 +27,7 @@ def test_help_of_calib_and_each_verb_lists_its_options(capsys):
     for verb in ("pattern", "plan", "preview"):
         assert verb in top
     pat = _help(capsys, ["pattern", "--help"])
-    for name in ("spiral-step", "stop-mid-path", "retract", "start-stop"):
+    for name in ("spiral-step", "stop-mid-path", "retract", "start-stop", "probe"):
         assert name in pat
     opts = {
         ("pattern", "spiral-step"): ("--printer", "--output", "--speeds", "--step-s", "--steps", "--widths",
@@ -36,6 +36,7 @@ def test_help_of_calib_and_each_verb_lists_its_options(capsys):
                                        "--wizard-wait-s", "--layer-height"),
         ("pattern", "retract"): ("--designs", "--steps", "--draw-mm", "--restore-mm"),
         ("pattern", "start-stop"): ("--re-mm", "--widths", "--ve", "--layer-height", "--draw-s"),
+        ("pattern", "probe"): ("--lines", "--length-mm", "--speeds", "--stops-s", "--max-flow", "--layer-height"),
         ("plan",): ("--printer", "--output", "--layer-height-mm", "--min-test-length-mm"),
         ("preview",): ("--printer", "--output", "--dpi"),
     }

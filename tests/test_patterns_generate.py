@@ -1,4 +1,4 @@
-"""The four test patterns: bed bounds, fiducials that decode, no overlaps, round trip
+"""The five test patterns: bed bounds, fiducials that decode, no overlaps, round trip
 through the G-code parser/planner, spiral steps off the angle, exponential feed ramp."""
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from patterns.profile import load_profile, profile_from_dict
 from patterns.stop_mid_path import exp_feed_ramp
 
 PROFILES = ("adventurer3", "long_bowden", "direct_drive")
-NAMES = ("spiral-step", "stop-mid-path", "retract", "start-stop")
+NAMES = ("spiral-step", "stop-mid-path", "retract", "start-stop", "probe")
 
 
 @functools.lru_cache(maxsize=None)

@@ -84,6 +84,25 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     sp.add_argument("--ve", type=positive, default=1.0, help="extruder velocity while drawing, mm/s (default 1)")
     sp.add_argument("--layer-height", type=positive, default=0.3, help="layer height, mm (default 0.3)")
     sp.add_argument("--draw-s", type=positive, default=3.0, help="drawing time per test, s (default 3)")
+
+    sp = sub.add_parser("probe", help="lines whose speed, width, stops and retractions vary apart (for "
+                                      "calib diagnose)",
+                        description="Straight lines, each slow then fast, with its own width and speed, a "
+                                    "mid-line stop of 1.5, 3 or 6 s at half or three quarters of its length, "
+                                    "a retraction at half of the stops, alternating direction: the causes a "
+                                    "missing effect can have part, so `calib diagnose` can tell them apart "
+                                    "(fit/hidden.py's discovery probe as G-code).")
+    common(sp)
+    sp.add_argument("--lines", type=integer(4), default=8, help="lines (default 8)")
+    sp.add_argument("--length-mm", type=positive, default=60.0, help="line length, mm (default 60)")
+    sp.add_argument("--speeds", type=_pos, default=[30.0, 60.0, 100.0, 140.0],
+                    help="fast head speeds cycled over the lines, mm/s (default 30,60,100,140; capped by "
+                         "the printer's max and --max-flow)")
+    sp.add_argument("--stops-s", type=_pos, default=[1.5, 3.0, 6.0],
+                    help="dwell at each line's stop cycled over the lines, s (default 1.5,3,6)")
+    sp.add_argument("--max-flow", type=positive, default=10.0,
+                    help="the hot end's melt rate, mm^3/s: no line is commanded more (default 10)")
+    sp.add_argument("--layer-height", type=positive, default=0.2, help="layer height, mm (default 0.2)")
     return p
 
 
@@ -97,6 +116,9 @@ def _kwargs(args) -> dict:
                     wizard_wait_s=args.wizard_wait_s, width_mm=args.width, layer_height_mm=args.layer_height)
     if args.pattern == "retract":
         return dict(designs=args.designs, n_steps=args.steps, draw_mm=args.draw_mm, restore_mm=args.restore_mm)
+    if args.pattern == "probe":
+        return dict(n_lines=args.lines, length_mm=args.length_mm, fast_mm_s=args.speeds, stops_s=args.stops_s,
+                    max_flow_mm3_s=args.max_flow, layer_height_mm=args.layer_height)
     return dict(re_mm=args.re_mm, widths_mm=args.widths, ve_mm_s=args.ve, height_mm=args.layer_height,
                 draw_s=args.draw_s)
 
