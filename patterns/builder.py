@@ -146,6 +146,9 @@ class PatternBuilder:
     def __init__(self, profile, name: str, params: dict, *, layer_height_mm: float = 0.2,
                  line_width_mm: float | None = None):
         self.profile = load_profile(profile)
+        #: the retraction before a travel (mm of filament): the profile's unless a pattern
+        #: sets its own for its test lines
+        self.retract_mm = self.profile.retract_length_mm
         self.name = name
         self.params = dict(params)
         self.layer_height_mm = float(layer_height_mm)
@@ -173,8 +176,8 @@ class PatternBuilder:
             self._z = float(z_mm)
 
     def retract(self, length_mm: float | None = None) -> None:
-        """Retract to ``length_mm`` (default profile retract length) of total retraction."""
-        target = self.profile.retract_length_mm if length_mm is None else float(length_mm)
+        """Retract to ``length_mm`` (default ``retract_mm``) of total retraction."""
+        target = self.retract_mm if length_mm is None else float(length_mm)
         if target > self._retracted_mm + 1e-9:
             self.writer.extruder_move(-(target - self._retracted_mm), self.profile.retract_speed_mm_s)
             self._retracted_mm = target
