@@ -15,7 +15,7 @@ from pathlib import Path
 from calib.demo import _Runner, _data_dir
 from calib.errors import UserError
 
-PATTERN_CHOICES = ("spiral-step", "stop-mid-path", "retract", "start-stop")
+PATTERN_CHOICES = ("spiral-step", "stop-mid-path", "retract", "start-stop", "probe")
 
 
 class Asker:

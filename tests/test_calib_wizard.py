@@ -15,18 +15,19 @@ def test_asker_defaults_and_reasks_on_bad_choice():
     assert "please answer one of: spiral-step, retract" in out.getvalue()
 
 
-def test_wizard_writes_the_pattern_then_stops_clearly_when_answers_run_out(tmp_path, monkeypatch):
+@pytest.mark.parametrize("pattern", ["stop-mid-path", "probe"])
+def test_wizard_writes_the_pattern_then_stops_clearly_when_answers_run_out(tmp_path, monkeypatch, pattern):
     monkeypatch.chdir(tmp_path)
-    answers = "direct_drive\nsession\nstop-mid-path\nn\n"
+    answers = f"direct_drive\nsession\n{pattern}\nn\n"
     out = io.StringIO()
     with pytest.raises(UserError, match="ran out of answers"):
         run_wizard(inp=io.StringIO(answers), out=out)
     files = sorted(p.name for p in (tmp_path / "session").iterdir())
-    assert files == ["session.json", "stop-mid-path.gcode", "stop-mid-path.manifest.json",
-                     "stop-mid-path.preview.png", "stop-mid-path.timeline.npz"]
+    assert files == sorted(["session.json", f"{pattern}.gcode", f"{pattern}.manifest.json",
+                            f"{pattern}.preview.png", f"{pattern}.timeline.npz"])
     text = out.getvalue()
     # every step shows the command a user could type by hand
-    assert "$ calib pattern stop-mid-path --printer direct_drive -o session/stop-mid-path.gcode" in text
+    assert f"$ calib pattern {pattern} --printer direct_drive -o session/{pattern}.gcode" in text
     assert "path to the photo or scan" in text
 
 
