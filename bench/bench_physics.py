@@ -119,7 +119,7 @@ def _demo_spiral_rows() -> list[Row]:
                         t1 * 1e3, "ms", "", None))
         rows.append(Row("physics", f"demo spiral {spec} predict, 28 sets", t28 * 1e3, "ms",
                         "< 28x 1 set", t28 < 28 * t1))
-        full = m.simulate(ctx, th).widths_mm[0]
+        full = m.simulate(ctx, th).bead_widths_mm[0]
         ok = np.isfinite(full)
         err = float(np.max(np.abs(full[ok] - m.predict(ctx, th)[0][ok])))
         rows.append(Row("physics", f"demo spiral {spec}: max |w(coarse) - w(full timeline)|",

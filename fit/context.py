@@ -7,7 +7,7 @@ nozzle is laying a bead on a track; per station the deposit windows.
 
 Deposit geometry (the bead width from flow): while the nozzle is on track T over
 interval k it deposits dV_k = Af * out_k (mm^3) uniformly over the arc lengths
-[s_k, s_k+1] (a stop, s_k == s_k+1, deposits a blob: a jump of V at one s). The
+[s_k, s_k+1] (a stop, s_k == s_k+1, leaves a blob: a disc, fit/blobs.py). The
 cumulative deposited volume V(s) along the track is evaluated at the window boundaries
 s_i -+ d/2 (d = nozzle diameter, clipped to the printed part of the track) and
 
@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from calib.errors import UserError
+from fit.blobs import BlobMap, blob_map, still_intervals
 from fit.geometry import filament_area_mm2
 from patterns.manifest import Manifest, Samples, Timeline, sample_points, samples_at
 
@@ -122,6 +123,9 @@ class SimContext:
     #: ``Model.predict`` reads the widths through it. None: the stations are the table's,
     #: widths as laid.
     obs: "object | None" = field(default=None, repr=False)
+    #: Where the head stands still on a track and the stations its blob can reach
+    #: (fit/blobs.py); their volume is laid as a disc, not into the deposit windows.
+    blobs: "BlobMap | None" = field(default=None, repr=False)
 
     @property
     def n_t(self) -> int:
@@ -222,8 +226,12 @@ class SimContext:
             samples = sample_points(manifest)
         st = _stations(manifest, samples, track_of)
 
+        # what leaves the nozzle while the head stands still on a track is a blob: a disc
+        # (fit/blobs.py), not bead in the deposit windows
+        still = still_intervals(on, ds_tr)
+        blobs = blob_map(still, trk[:-1], tl.s_mm, h_int, st["track"], st["s_mm"])
         perm, lo_pos, lo_frac, hi_pos, hi_frac, win, printed = _deposit_maps(
-            trk, tl.s_mm, on, st["track"], st["s_mm"], d)
+            trk, tl.s_mm, on & ~still, st["track"], st["s_mm"], d)
 
         pat = manifest.pattern or {}
         pparams = pat.get("params", {}) if isinstance(pat.get("params", {}), dict) else {}
@@ -256,6 +264,7 @@ class SimContext:
             firmware_pa_s=_pget("firmware_pa_s", "pressure_advance_s", "pa_s"),
             firmware_smooth_time_s=_pget("firmware_smooth_time_s", "pressure_advance_smooth_time_s",
                                          "smooth_time_s"),
+            blobs=blobs,
         )
         keep = None
         if coarsen:
@@ -465,7 +474,7 @@ def _deposit_maps(trk, s_tl, on, st_track, st_s, d_mm):
             frac = np.where(L > 1e-12, (bnd - s0) / np.where(L > 1e-12, L, 1.0), 1.0)
             frac = np.clip(frac, 0.0, 1.0)
             # Window edges at the ends of the printed part take in everything deposited
-            # there, including blobs left by dwells at the very start or end.
+            # there (a dwell's blob is not: it is a disc, fit/blobs.py).
             at_start = bnd <= s_lo_tr + 1e-12
             at_end = bnd >= s_hi_tr - 1e-12
             j = np.where(at_start, 0, np.where(at_end, b - a - 1, j))

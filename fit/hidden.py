@@ -311,14 +311,17 @@ def make_case(hidden: str, seed: int = 0, noise_mm: float = 0.01, ds_mm: float =
         values[k] = v * scale * float(1.0 + 0.2 * (2 * rng.random() - 1))
     theta = _theta(model, values)
     absent = _theta(model, {**values, **{k: _absent_value(model, k) for k in HIDDEN[hidden]}})
+    from fit.blobs import under_blobs
     from fit.context import SimContext
     ctx = SimContext.build(man, samples)
     w_true, w_absent = np.asarray(model.predict(ctx, np.stack([theta, absent])))
     w_meas = w_true + noise_mm * rng.standard_normal(len(w_true))
     # What a scan measurement flags: the blob where the head stood still (its width is
-    # not a bead width) and samples with no bead.
+    # not a bead width: 1 mm about the stop, or its disc and 0.5 mm, fit/blobs.py) and
+    # samples with no bead.
     stop_at = np.array([man.track(int(k)).params.get("stop_s_mm", np.nan) for k in samples.track])
-    blob = np.abs(samples.s_mm - stop_at) <= 1.0
+    vol = model.simulate(ctx, theta[None]).blob_volume_mm3[0]
+    blob = (np.abs(samples.s_mm - stop_at) <= 1.0) | under_blobs(ctx.blobs, vol, len(samples.s_mm))
     valid = np.isfinite(w_true) & ~blob & (w_true > 0.05)
     flag = np.where(blob, "blob", np.where(valid, "", "missing")).astype(object)
     table = WidthTable(track=samples.track, s_mm=samples.s_mm, x_mm=samples.x_mm,

@@ -21,6 +21,7 @@ import numpy as np
 
 from calib.errors import UserError
 from fit import kernels as K
+from fit.blobs import blob_volumes_mm3, with_footprints
 from fit.context import SimContext, profile_dict
 from fit.effects import REGISTRY, Effect
 from fit.geometry import bead_width_mm, filament_area_mm2
@@ -48,9 +49,13 @@ class Simulation:
     ve_mm_s       (n_sets, n_int) commanded extruder velocity after the command effects
     p_end_mm      (n_sets,) advance P still stored at the end (mm of filament)
     x_end_mm_s    (n_sets,) thermal state at the end (mm/s)
-    widths_mm     (n_sets, n_samples) bead width at the stations (mm)
+    widths_mm     (n_sets, n_samples) bead width at the stations (mm), a dwell's blob
+                  (fit/blobs.py) included
     height_mm     (n_sets, n_samples) layer height at the stations (mm)
     area_mm2      (n_sets, n_samples) deposited cross-section at the stations (mm^2)
+    bead_widths_mm  (n_sets, n_samples) the width the moving head laid, without the blobs'
+                  discs (mm; the renderer draws those as discs of blob_diameter_mm)
+    blob_volume_mm3 (n_sets, n_blobs) volume of each of ``ctx.blobs`` (mm^3)
     """
 
     out_mm: np.ndarray
@@ -61,6 +66,8 @@ class Simulation:
     widths_mm: np.ndarray
     height_mm: np.ndarray
     area_mm2: np.ndarray
+    bead_widths_mm: np.ndarray | None = None
+    blob_volume_mm3: np.ndarray | None = None
 
 
 class Model:
@@ -200,8 +207,12 @@ class Model:
         p0 = np.zeros(n) if p0_mm is None else np.broadcast_to(np.asarray(p0_mm, float), (n,)).copy()
         return n, pds, ve, ve_per_set, coef, p0
 
-    def _widths(self, ctx: SimContext, area, pds, n, observe=None, station_ctx: SimContext | None = None):
+    def _widths(self, ctx: SimContext, area, pds, n, observe=None, station_ctx: SimContext | None = None,
+                blob_vol=None):
         """Height and width stages: (widths, heights) at the stations of ``ctx``.
+
+        ``blob_vol`` (n_sets, n_blobs) mm^3: the volume of each of ``ctx.blobs``, laid as
+        discs over the bead (fit/blobs.py) before the picture reads the widths.
 
         ``observe`` (fit/observe.py): ``ctx``'s stations are its physics points (sub-stations
         near changes of flow or speed, station centres elsewhere); the laid widths there are
@@ -218,6 +229,8 @@ class Model:
         h = np.ascontiguousarray(np.broadcast_to(h, (n if h_per_set else 1, area.shape[1])), dtype=float)
         w = np.empty_like(area)
         K.kernel("bead_width", n)(area, h, h_per_set, ctx.printed, w)
+        if blob_vol is not None and ctx.blobs is not None and ctx.blobs.n_blobs:
+            w = with_footprints(w, blob_vol, ctx.blobs)
         if observe is not None:
             w, ctx = observe.apply(w), station_ctx
         if self._width:
@@ -238,10 +251,14 @@ class Model:
         K.kernel("nozzle", n)(self._mode, ve, ve_per_set, ctx.dt_s, ctx.v_head_mm_s, ctx.h_mm,
                               ctx.on_track, coef, ctx.filament_area_mm2, p0, out, vn, p_end, x_end)
         area = self._deposit(ctx, out, vn)
-        w, h = self._widths(ctx, area, pds, n)
+        bm = ctx.blobs
+        vol = blob_volumes_mm3(out, bm, ctx.filament_area_mm2) if bm is not None else None
+        w_bead, h = self._widths(ctx, area, pds, n)
+        w = self._widths(ctx, area, pds, n, blob_vol=vol)[0] if bm is not None and bm.n_blobs else w_bead
         return Simulation(out_mm=out, vn_node_mm_s=vn, ve_mm_s=np.broadcast_to(ve, (n, n_int)),
                           p_end_mm=p_end, x_end_mm_s=x_end,
-                          widths_mm=w, height_mm=np.broadcast_to(h, area.shape), area_mm2=area)
+                          widths_mm=w, height_mm=np.broadcast_to(h, area.shape), area_mm2=area,
+                          bead_widths_mm=w_bead, blob_volume_mm3=vol)
 
     @staticmethod
     def _deposit(ctx: SimContext, out: np.ndarray, vn: np.ndarray) -> np.ndarray:
@@ -256,6 +273,11 @@ class Model:
     def predict(self, ctx: SimContext, theta) -> np.ndarray:
         """Bead widths (n_sets, n_samples) mm at the stations; NaN where never printed; as
         the measurement reads them where ``ctx.physics`` carries its kernel (fit/observe.py).
+        The beads the moving head lays, without the dwells' blobs (``simulate``'s
+        ``bead_widths_mm``): a blob's disc (fit/blobs.py) is our assumption of its shape (a
+        real one domes higher and narrower), the picture shows it and the measurement flags
+        the stations it covers (`blob`, `steep`); a fit through the disc's edge would trade
+        the blob's volume, so the stored advance and tau, against where those flags end.
 
         Integrates on the coarsened physics timeline ``ctx.physics`` when there is one
         (fit/context.py :func:`coarsen_nodes`, same widths within ~1 um; cut after the last

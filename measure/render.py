@@ -391,11 +391,13 @@ def _station_curve(s, tab, curve):
 
 
 def _segments(manifest: Manifest, widths: WidthTable | None, camera: Camera, ss: int,
-              edge_mm: float | None, deposits=None):
+              edge_mm: float | None, deposits=None, blobs=()):
     """Segments of every bead piece, their sub-pixel windows, and per piece (s_e, h).
 
     ``deposits`` = (track_pieces, strings) of :func:`measure.phenomena.deposit_pieces`:
     non-test tracks drawn at their deposited widths, travel strings added (h = d).
+    ``blobs``: discs (x_mm, y_mm, diameter_mm, h_mm), each a piece of its own (a segment
+    of zero length is a disc).
     """
     track_over, strings = deposits if deposits is not None else ({}, [])
     seg, segw, sig, hs, starts = [], [], [], [], [0]
@@ -415,6 +417,9 @@ def _segments(manifest: Manifest, widths: WidthTable | None, camera: Camera, ss:
             add(sg, sw, h)
     for sg, sd, d_mean in strings:
         add(sg, sd, d_mean)
+    for x, y, dia, h in blobs:
+        if dia > 0:
+            add(np.array([[x, y, x, y]], float), np.array([[dia, dia]], float), h)
     if not seg:
         return None
     seg = np.vstack(seg)
@@ -654,7 +659,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
            noise: float = 1.0, blur_px: float | None = None, jpeg_quality: int | None = None,
            clutter: bool = True, supersample: int = 2, edge_mm: float | None = None,
            model: dict | None = None, progress: bool = False, realism=None,
-           deposits=None) -> Rendered:
+           deposits=None, blobs=(), truth_widths: WidthTable | None = None) -> Rendered:
     """Render ``manifest`` as ``camera`` sees it; test tracks at ``widths`` (mm).
 
     widths        true widths along the test tracks (e.g. ``print_virtual(...).table``);
@@ -675,6 +680,10 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
                   widest point), no longer the 50 % point of eq. (1)
     deposits      (track_pieces, strings) from :func:`measure.phenomena.deposit_pieces`,
                   used by the "strings" and "raster_gaps" phenomena
+    blobs         discs (x_mm, y_mm, diameter_mm, h_mm) drawn over the beads: the dwells'
+                  blobs (fit/blobs.py), whose widths ``widths`` then leaves out
+    truth_widths  the widths the truth records (default ``widths``): with ``blobs``, the
+                  beads with the discs' chords (fit/virtual.py ``VirtualPrint.table``)
     """
     if plate not in ("dark", "light"):
         raise ValueError(f"plate must be 'dark' or 'light', not {plate!r}")
@@ -714,7 +723,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     bar.update()
     # 2. plastic coverage, exact (eq. 1) or the physical profile, then pixel-area average
     alpha_s = np.zeros((H * ss, W * ss), np.float32)
-    prep = _segments(manifest, widths, camera, ss, edge_mm, dep)
+    prep = _segments(manifest, widths, camera, ss, edge_mm, dep, blobs)
     shade_s = spec_s = None
     attenuation = None
     if prep is not None and "profile" in realism:
@@ -800,7 +809,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         image = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     bar.update()
     bar.close()
-    table = true_widths(manifest, widths)
+    table = true_widths(manifest, truth_widths if truth_widths is not None else widths)
     settings = {"plate": plate, "plastic": plastic, "opacity": opacity, "plastic_bgr": col.tolist(),
                 "seed": int(seed), "noise": float(noise), "blur_px": float(blur_px),
                 "jpeg_quality": jpeg_quality, "clutter": bool(clutter), "supersample": ss,

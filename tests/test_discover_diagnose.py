@@ -570,7 +570,8 @@ def test_on_the_probe_print_the_last_stop_length_and_the_time_since_a_retraction
     found = dict(aliases(resid, cov, "last_stop_duration_s"))
     assert {"time_since_retract_s", "s_mm"} <= set(found) and "flow_mm3_s" not in found
     text = alias_text("last_stop_duration_s", aliases(resid, cov, "last_stop_duration_s"))
-    assert "moves with s_mm (100 %)" in text and "tells which" in text
+    # (a blob's disc hides the stations just after the stop: not all of them line up)
+    assert found["s_mm"] > 0.95 and f"s_mm ({100 * found['s_mm']:.0f} %)" in text and "tells which" in text
     assert alias_text("flow_mm3_s", []) == ""
 
 

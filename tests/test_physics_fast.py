@@ -113,7 +113,7 @@ def test_predict_on_coarse_timeline_matches_full(planned_manifest, spiral_manife
     ctx = SimContext.build(spiral_manifest)
     model = build_model(spec).with_values(values)
     th = model.default_theta()
-    full = model.simulate(ctx, th).widths_mm[0]
+    full = model.simulate(ctx, th).bead_widths_mm[0]
     coarse = model.predict(ctx, th)[0]
     ok = np.isfinite(full)
     assert np.array_equal(ok, np.isfinite(coarse))
@@ -125,7 +125,7 @@ def test_predict_on_coarse_timeline_matches_full(planned_manifest, spiral_manife
     assert np.array_equal(ctx.physics.t_s, ctx.t_s[ctx.physics.node_index])
     model = build_model(spec).with_values(values)
     th = model.default_theta()
-    full = model.simulate(ctx, th).widths_mm[0]
+    full = model.simulate(ctx, th).bead_widths_mm[0]
     coarse = model.predict(ctx, th)[0]
     ok = np.isfinite(full)
     assert np.array_equal(ok, np.isfinite(coarse))
@@ -145,7 +145,7 @@ def test_batched_parallel_predict_equals_set_by_set(planned_manifest):
         assert np.max(np.abs(batch[ok] - one[ok])) < 1e-12
         # without coarsening predict is exactly simulate's widths
         ctx_full = SimContext.build(planned_manifest, coarsen=False)
-        w_sim = model.simulate(ctx_full, th[:2]).widths_mm
+        w_sim = model.simulate(ctx_full, th[:2]).bead_widths_mm
         w_pred = model.predict(ctx_full, th[:2])
         assert np.max(np.abs(w_sim[ok[:2]] - w_pred[ok[:2]])) < 1e-12
 

@@ -160,8 +160,37 @@ def test_blob_volume_at_a_dwell_is_the_stored_advance():
     # The blob sits at the end of track 1 and widens the last station.
     s1, w1 = vp.widths[1]
     assert w1[-1] > 1.5 * np.median(w1)
-    # Total area seen by the stations matches the deposited volume on that track.
-    assert vp.table.valid.all()
+    # every station printed; those the blob's disc covers are flagged as a picture shows them
+    assert (vp.table.valid | (vp.table.flag == "blob")).all() and (vp.table.flag == "blob").sum() >= 3
+
+
+def test_a_dwells_blob_is_a_disc_of_its_volume_at_the_layer_height():
+    # fit/blobs.py: the blob of volume V at the end of track 1 is a disc of radius
+    # r = sqrt(V / (pi h)); the stations within r read its chord 2 sqrt(r^2 - u^2) where
+    # that is wider than the bead, the others the bead alone (the blob's volume is not in
+    # their deposit windows: before, all of it went into the last station's 0.4 mm window)
+    m = _retract_travel_manifest()
+    tau, h = 0.1, 0.2
+    vp = print_virtual(m, build_model("pa"), {"pa.tau_s": tau})
+    V = vp.blobs[0].volume_mm3
+    r = np.sqrt(V / (np.pi * h))
+    assert vp.blobs[0].diameter_mm == pytest.approx(2 * r, rel=1e-12)
+    assert 1.4 < 2 * r < 1.7                            # ~0.37 mm^3 at h 0.2 mm
+    s1, w1 = vp.widths[1]
+    t = vp.table
+    bead = vp.bead_width_mm[t.track == 1]
+    u = s1 - vp.blobs[0].s_mm
+    chord = 2 * np.sqrt(np.clip(r * r - u * u, 0.0, None))
+    np.testing.assert_allclose(w1, np.maximum(bead, chord), rtol=0, atol=1e-12)
+    assert np.sum(chord > bead) >= 3                    # the disc spans several stations
+    assert w1[-1] == pytest.approx(2 * r, rel=1e-9)
+    # the bead under it is the steady bead: no blob volume in the windows
+    assert np.max(np.abs(bead[-8:] - 0.5)) < 0.01
+    # the fitter predicts the beads, not the disc (Model.predict: the measurement flags it)
+    ctx = SimContext.build(m)
+    w_pred = build_model("pa").predict(ctx, [tau])[0]
+    ok = np.isfinite(w_pred)
+    np.testing.assert_allclose(w_pred[ok], vp.bead_width_mm[ok], atol=1e-3)
 
 
 def test_sum_of_station_areas_recovers_deposited_volume():

@@ -110,18 +110,25 @@ def simulate_scan(manifest, truth_spec: str, values: dict, camera_kind: str = "f
 
     if not isinstance(realism, Realism):
         realism = Realism.parse(realism, camera_kind)
+    # the beads are drawn as the moving head laid them and each dwell's blob as its disc
+    # (fit/blobs.py); the truth is the width across the track, the discs' chords included
+    t = vp.table
+    blob_chord = np.where(t.width_mm > vp.bead_width_mm, t.width_mm, 0.0)
+    t.width_mm[:] = vp.bead_width_mm
     if "irregular" in realism:
         from measure.phenomena import irregular_widths
 
-        t = vp.table
         t.width_mm[:] = irregular_widths(t.track, t.s_mm, t.width_mm, np.random.default_rng([int(seed), 11]),
                                          rel=realism.irregular_rel, corr_mm=realism.irregular_corr_mm,
                                          abs_mm=realism.irregular_mm, short_mm=realism.irregular_short_mm)
+    drawn = t.subset(np.ones(len(t), bool))
+    t.width_mm[:] = np.maximum(t.width_mm, blob_chord)
     deposits = deposit_pieces(manifest, vp) if set(NEEDS_PHYSICS) & realism.enabled else None
-    rendered = render(manifest, vp.table, camera, plate=plate, plastic=plastic, seed=seed,
+    rendered = render(manifest, drawn, camera, plate=plate, plastic=plastic, seed=seed,
                       jpeg_quality=jpeg_quality, clutter=clutter, progress=progress,
                       model={"spec": truth_spec, "values": values}, realism=realism,
-                      deposits=deposits, **render_kw)
+                      deposits=deposits, blobs=[(b.x_mm, b.y_mm, b.diameter_mm, b.h_mm) for b in vp.blobs],
+                      truth_widths=t, **render_kw)
     rendered.truth.extras.update({"commanded_mm3": vp.commanded_mm3, "extruded_mm3": vp.extruded_mm3,
                                   "dribble_mm3": vp.dribble_mm3, "blobs": len(vp.blobs)})
     return rendered, vp
