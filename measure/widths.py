@@ -87,6 +87,10 @@ MAX_WINDOW_WIDTH_MM = 3.0
 #: Where a track coasts (commanded width 0), a bead wider than this times its reference
 #: width (+ 0.05 mm) is not its ooze but a blob (measure_widths)
 BLOB_COAST_FACTOR = 1.2
+#: Where the head stood still inside a track (the manifest's timeline), a station within
+#: 1 mm of it wider than the bead 1-6 mm around by more than this (mm) is a blob
+#: (:func:`_at_dwell`)
+DWELL_BLOB_MM = 0.05
 #: A track's blur takes its own level about the picture's blur plane from at least this
 #: many of its stations in the blur-free pass (:func:`_learn_blur_plane`).
 TRACK_BLUR_MIN_STATIONS = 20
@@ -384,6 +388,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     flag[(flag == "") & (gap < NEIGHBOUR_FLAG_SIGMAS * fit.params[:, 5])] = "neighbour"
     if manifest is not None:
         flag[(flag == "") & _at_end(manifest, smp, w, w_ref, fit.params[:, 5])] = "end"
+        flag[(flag == "") & _at_dwell(manifest, smp, w, fit.params[:, 5])] = "blob"
     # "faint" is not absence: no bead would be seen there either way
     # ... and what made a dropout lies in its neighbours' strips and despeckling windows too:
     # on the phone photos they read the 0.25 mm beads 5-11 um narrower than the rest, with
@@ -771,6 +776,58 @@ def _at_end(manifest, smp, w_meas, w_ref, blur_mm=None):
                         reach = max(reach, STRIP_MM / 2 + 2 * float(np.median(blur[on][near]))
                                     + float(np.sqrt(r_blob ** 2 - (w_bead / 2) ** 2)))
                 out[on[near & (d < reach)]] = True
+    return out
+
+
+def dwell_points_mm(manifest) -> dict:
+    """{track id: arc lengths (mm)} where the head stands still on the track in the
+    manifest's timeline (a stop mid path, a G4, an unretract before it moves; fit/blobs.py
+    ``still_intervals``, the rule the virtual printer lays its blobs by)."""
+    from fit.blobs import still_intervals
+
+    tl = manifest.timeline
+    if tl is None or len(tl) < 2:
+        return {}
+    trk = np.asarray(tl.track)
+    s = np.nan_to_num(np.asarray(tl.s_mm, float))
+    on = (trk[:-1] == trk[1:]) & (trk[:-1] >= 0)
+    k = np.flatnonzero(still_intervals(on, np.diff(s)))
+    return {int(t): np.unique(np.round(s[k][trk[k] == t], 3)) for t in np.unique(trk[k])}
+
+
+def _at_dwell(manifest, smp, w_meas, blur_mm=None):
+    """Stations a dwell's blob covers inside a track: where the head stood still
+    (:func:`dwell_points_mm`) and the widest station within 1 mm reads more than
+    DWELL_BLOB_MM over the bead (the median 1-6 mm around), every station within STRIP_MM
+    / 2 + 2 blurs + sqrt(R^2 - (w/2)^2) of it (R half that widest width, w the bead: where
+    the blob's chord is wider than the bead, as :func:`_at_end`). The fit predicts the
+    bead there (fit/model.py ``predict``), and the blob's crest, level across the stop,
+    is not `steep` (session 66: a 1 mm restore disc on a 0.5 mm bead read 1 mm at its
+    centre and passed)."""
+    out = np.zeros(len(smp), bool)
+    pts = dwell_points_mm(manifest)
+    if not pts:
+        return out
+    wm = np.where(np.isfinite(w_meas), w_meas, 0.0)
+    blur = np.zeros(len(smp)) if blur_mm is None else np.nan_to_num(np.asarray(blur_mm, float))
+    for tid, s0s in pts.items():
+        on = np.flatnonzero(smp.track == tid)
+        if not len(on):
+            continue
+        s = smp.s_mm[on]
+        for s0 in s0s:
+            d = np.abs(s - s0)
+            near = d < 1.0
+            bead = (d >= 1.0) & (d < 6.0) & (wm[on] > 0)
+            if not near.any() or not bead.any():
+                continue
+            w_bead = float(np.median(wm[on][bead]))
+            widest = float(np.max(wm[on][near]))
+            if widest <= w_bead + DWELL_BLOB_MM:
+                continue
+            reach = STRIP_MM / 2 + 2 * float(np.median(blur[on][near])) \
+                + float(np.sqrt((widest / 2) ** 2 - (w_bead / 2) ** 2))
+            out[on[d < reach]] = True
     return out
 
 

@@ -979,3 +979,26 @@ def test_the_plate_level_surface_ignores_a_logo_and_falls_back_to_the_median():
     assert np.all(off[logo] > 0.7) and np.all(off[~logo] < 0.05)
     few = plate_surface(x[:10], y[:10], level[:10], ok[:10])
     assert np.allclose(few, np.median(level[:10]))
+
+
+def test_a_blob_where_the_head_stood_still_inside_a_line_is_flagged_not_read_as_bead(tmp_path):
+    """The probe's dwells on the direct drive (pa 0.05 s) leave 0.6-1.6 mm discs on 0.4-0.8
+    mm beads (fit/blobs.py). Their crest is level across the stop, so `steep` misses it:
+    before `_at_dwell`, valid stations there read up to 0.34 mm wider than the bead the fit
+    predicts. Now every valid station is the bead, and the stations under a disc
+    wider than the bead by 0.1 mm are not valid."""
+    from calib.commands.simulate import simulate_scan, write_image
+    from measure.pipeline import measure_scan
+    from patterns.probe import generate
+
+    _, man = generate("direct_drive")
+    r, vp = simulate_scan(man, "pa", {"pa.tau_s": 0.05}, "flatbed", dpi=300.0, seed=0, realism="none")
+    assert max(b.diameter_mm for b in vp.blobs) > 1.2
+    res = measure_scan(write_image(str(tmp_path / "scan.png"), r), man)
+    t, truth = res.table, r.truth.widths
+    test = np.isin(t.track, [x.id for x in man.test_tracks()])
+    assert t.valid[test].mean() > 0.85
+    ok = test & t.valid
+    assert np.max(np.abs(t.width_mm[ok] - vp.bead_width_mm[ok])) < 0.06
+    under = test & (truth.width_mm > vp.bead_width_mm + 0.1)
+    assert under.sum() >= 15 and not t.valid[under].any()
