@@ -18,6 +18,10 @@ one station and the renderer drew a 35 mm disc over the neighbouring lines, wher
 one of that volume is ~4 mm across; the start-stop rings' 0.1-0.2 mm^3 restore blobs read
 2-4 mm at one station, ~1 mm as discs.
 
+The virtual printer's truth and picture carry the disc; the fit predicts the bead under it
+(fit/model.py ``Model.predict``) and leaves its stations to the measurement's flags
+(measure/widths.py ``_at_dwell``, ``_at_end``, ``steep``).
+
 Only the stations of the blob's own track are widened (a disc reaching a neighbouring
 track is rare on our patterns, whose lines are 5-8 mm apart, and the measurement flags
 such a station as ``blob`` or ``neighbour`` either way).

@@ -54,7 +54,8 @@ class Simulation:
     height_mm     (n_sets, n_samples) layer height at the stations (mm)
     area_mm2      (n_sets, n_samples) deposited cross-section at the stations (mm^2)
     bead_widths_mm  (n_sets, n_samples) the width the moving head laid, without the blobs'
-                  discs (mm; the renderer draws those as discs of blob_diameter_mm)
+                  discs (mm; what ``predict`` returns; the renderer draws the discs apart,
+                  fit/virtual.py ``Blob.diameter_mm``)
     blob_volume_mm3 (n_sets, n_blobs) volume of each of ``ctx.blobs`` (mm^3)
     """
 
