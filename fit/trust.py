@@ -360,7 +360,9 @@ def assess(doc: dict, *, chi2_max: float = CHI2_NU_MAX) -> Verdict:
     elif noisy and misfit:
         advice = ("measure the print again before looking for a missing effect: a flatbed scan saved "
                   "as PNG or TIFF, or a photo in diffuse light square to the print (textured plates "
-                  "sparkle under a lamp); if the new widths still do not fit, run `calib diagnose`")
+                  "sparkle under a lamp; 3-5 photos with the lamp moved between them, measured together by "
+                  "`calib measure A.jpg B.jpg C.jpg`, average the sparkle out); if the new widths still do "
+                  "not fit, run `calib diagnose`")
     elif any("does not fit" in p for p in problems) or structured:
         advice = ("run `calib diagnose` with the same widths, manifest and model to find the "
                   "missing effect, then fit the model it names")

@@ -152,7 +152,9 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     if meas.sd_scale >= NOISY_SD_SCALE or meas.sd_floor_mm >= NOISY_SD_FLOOR_MM:
         warnings.append(f"the widths scatter along the tracks {meas.sd_scale:.1f}x their edge fits' sd plus "
                         f"{meas.sd_floor_mm * 1000:.1f} um (JPEG blocks, plate grain, glare or focus; width_sd_mm "
-                        "includes it): a lossless flatbed scan (PNG/TIFF) measures tighter")
+                        "includes it): a lossless flatbed scan (PNG/TIFF) measures tighter, and so do several "
+                        "photos with the lamp moved between them, measured together (calib measure A.jpg B.jpg "
+                        "C.jpg: each station the mean of its readings)")
     flags = Counter(f for f in table.flag if f)
     ok = table.valid
     summary = {

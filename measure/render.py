@@ -659,7 +659,8 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
            noise: float = 1.0, blur_px: float | None = None, jpeg_quality: int | None = None,
            clutter: bool = True, supersample: int = 2, edge_mm: float | None = None,
            model: dict | None = None, progress: bool = False, realism=None,
-           deposits=None, blobs=(), truth_widths: WidthTable | None = None) -> Rendered:
+           deposits=None, blobs=(), truth_widths: WidthTable | None = None,
+           light_seed: int | None = None) -> Rendered:
     """Render ``manifest`` as ``camera`` sees it; test tracks at ``widths`` (mm).
 
     widths        true widths along the test tracks (e.g. ``print_virtual(...).table``);
@@ -684,6 +685,12 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
                   blobs (fit/blobs.py), whose widths ``widths`` then leaves out
     truth_widths  the widths the truth records (default ``widths``): with ``blobs``, the
                   beads with the discs' chords (fit/virtual.py ``VirtualPrint.table``)
+    light_seed    where the lamp stands, apart from ``seed``: the light's gradient and glare,
+                  the highlight on the flanks, the plate's specks (``sparkle``) and the
+                  exposure's sensor noise come from it, everything else (the print, plate,
+                  plastic, camera) from ``seed``. Several renders that differ only in it are
+                  photos from one camera with the lamp moved between them (measure/stack.py).
+                  None: every draw from ``seed``, as before it existed
     """
     if plate not in ("dark", "light"):
         raise ValueError(f"plate must be 'dark' or 'light', not {plate!r}")
@@ -698,11 +705,15 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     rng = np.random.default_rng(seed)
     # the phenomena draw from their own stream: switching one on does not reshuffle the rest
     prng = np.random.default_rng([int(seed), 11])
+    # the lamp's draws: from the two streams above unless it has a seed of its own
+    lrng = None if light_seed is None else np.random.default_rng([int(light_seed), 17])
+    lamp_p = prng if lrng is None else lrng
+    lamp_r = rng if lrng is None else lrng
     if lighting is None and "light" in realism:
-        g = prng.uniform(0.25, 0.40, 2) * prng.choice([-1.0, 1.0], 2)
+        g = lamp_p.uniform(0.25, 0.40, 2) * lamp_p.choice([-1.0, 1.0], 2)
         lighting = Lighting(exposure=225.0, gradient=(float(g[0]), float(g[1])), vignetting=0.45,
-                            glare=float(prng.uniform(15.0, 25.0)))
-    lighting = lighting or Lighting.for_camera(camera.kind, rng)
+                            glare=float(lamp_p.uniform(15.0, 25.0)))
+    lighting = lighting or Lighting.for_camera(camera.kind, lamp_r)
     if blur_px is None:
         blur_px = 1.2 if camera.kind == "phone" else 0.7
     if jpeg_quality is None and "jpeg" in realism:
@@ -730,7 +741,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         seg, segw, bbox, starts, sig, hs = prep
         ppmm = float(np.median(camera.px_per_mm(seg[:, :2])))
         aa = np.full(len(hs), 1.0 / (ss * ppmm))
-        hv = ph.half_vector(camera.kind, prng)
+        hv = ph.half_vector(camera.kind, lamp_p)
         p_spec = float(prng.uniform(40.0, 80.0))
         thick = np.zeros_like(alpha_s)
         shade_s = np.zeros_like(alpha_s)
@@ -774,7 +785,9 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
                        logos_inside="logos" in realism, logo_rng=prng)
     if "grain" in realism:
         back *= ph.pei_grain(Xc, Yc, seed=int(seed))[..., None]
-    sparkle = ph.pei_sparkle(Xc, Yc, seed=int(seed)) * np.float32(realism.sparkle) if "sparkle" in realism else None
+    # the specks are the grain's facets that mirror the lamp: another lamp, other facets
+    speck_seed = int(seed) if light_seed is None else int(seed) + 104729 * (int(light_seed) + 1)
+    sparkle = ph.pei_sparkle(Xc, Yc, seed=speck_seed) * np.float32(realism.sparkle) if "sparkle" in realism else None
     del Xc, Yc
     bar.update()
     # 4. compose (linear in coverage), light, blur
@@ -790,7 +803,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     if specular is not None:
         img += (realism.glare_dn * specular)[..., None]
     if lighting.glare > 0:
-        img += _glare(W, H, lighting.glare, rng)[..., None]
+        img += _glare(W, H, lighting.glare, lamp_r)[..., None]
     if "defocus" in realism:
         img = ph.varying_blur(img, ph.defocus_map(W, H, prng, lo_px=blur_px * 0.8, hi_px=blur_px * 3.0))
     elif blur_px > 0:
@@ -799,7 +812,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     # 5. sensor noise: shot (Poisson ~ Gaussian, variance DN * 255 / full well) + read
     if noise > 0:
         var = np.maximum(img, 0.0) * (255.0 / 4000.0) + 1.2 ** 2
-        img += noise * np.sqrt(var) * rng.standard_normal(img.shape, dtype=np.float32)
+        img += noise * np.sqrt(var) * lamp_r.standard_normal(img.shape, dtype=np.float32)
     image = np.clip(np.rint(img), 0, 255).astype(np.uint8)
     del img
     encoded = None
@@ -811,7 +824,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     bar.close()
     table = true_widths(manifest, truth_widths if truth_widths is not None else widths)
     settings = {"plate": plate, "plastic": plastic, "opacity": opacity, "plastic_bgr": col.tolist(),
-                "seed": int(seed), "noise": float(noise), "blur_px": float(blur_px),
+                "seed": int(seed), "light_seed": light_seed, "noise": float(noise), "blur_px": float(blur_px),
                 "jpeg_quality": jpeg_quality, "clutter": bool(clutter), "supersample": ss,
                 "edge_mm": edge_mm, "edge_softness_per_height": EDGE_SOFTNESS_PER_HEIGHT,
                 "realism": realism.label, "attenuation_mm": attenuation,

@@ -14,28 +14,36 @@ def add_parser(subparsers):
                     "path is found in the picture automatically, or --points gives the pose by hand), "
                     "measure the bead width every 0.25 mm along every test track with a "
                     "one-sigma uncertainty, and write the widths CSV (plus a QA overlay and a JSON "
-                    "summary on request). Exit code 2 with one line on bad input; no partial CSV.")
-    p.add_argument("scan", help="the picture: JPEG, PNG or TIFF (8/16 bit), up to 50 MP")
+                    "summary on request). Several pictures of the same print (the lamp moved between "
+                    "them: a textured plate's specks move, the bead does not) are each measured and "
+                    "their widths averaged station by station. Exit code 2 with one line on bad input; "
+                    "no partial CSV.")
+    p.add_argument("scan", nargs="+",
+                   help="the picture: JPEG, PNG or TIFF (8/16 bit), up to 50 MP; or several pictures of the "
+                        "same print, e.g. 3-5 photos with the lamp moved around the print between them "
+                        "(measure/stack.py; the QA overlay shows the first)")
     p.add_argument("--manifest", required=True, help="NAME.manifest.json of the printed pattern")
     p.add_argument("-o", "--output", required=True, help="widths CSV to write")
     p.add_argument("--overlay", help="QA overlay PNG to write (tracks, measured edges, marker ids)")
     p.add_argument("--summary", help="JSON summary to write (residual, fraction valid, flags, warnings)")
     p.add_argument("--points", help='point hints "x_mm,y_mm=u_px,v_px;..." (>= 4) for prints without fiducials '
-                   "(default: the pose is found automatically from the track layout)")
+                   "(default: the pose is found automatically from the track layout; with several pictures, the same "
+                   "points for each: one camera that did not move)")
     p.add_argument("--max-residual-mm", type=positive, default=0.1,
                    help="refuse a registration with a larger residual (mm; default 0.1)")
     return p
 
 
 def run(args) -> int:
-    from measure.pipeline import MeasureRefused, measure_scan, save_summary, summary_path_for
+    from measure.pipeline import MeasureRefused, save_summary, summary_path_for
+    from measure.stack import measure_pictures
     from patterns.manifest import Manifest
     from calib.errors import UserError
 
     man = Manifest.load(args.manifest)
     try:
-        res = measure_scan(args.scan, man, points=args.points, overlay_path=None,
-                           max_residual_mm=args.max_residual_mm)
+        res = measure_pictures(args.scan, man, points=args.points, overlay_path=None,
+                               max_residual_mm=args.max_residual_mm)
     except MeasureRefused as exc:
         # no widths CSV, but the overlay and summary that show why (the user's next step)
         shown = _write_qa(args, man, exc.result)
@@ -50,6 +58,12 @@ def run(args) -> int:
     print(f"{Path(args.output)}: {s['samples']} samples, {s['fraction_valid']:.0%} valid, "
           f"registration residual {res.registration.residual_mm:.3f} mm ({res.registration.method})",
           file=sys.stderr)
+    st = s.get("stack")
+    if st:
+        shares = ", ".join(f"{p['fraction_valid']:.0%}" for p in st["per_picture"])
+        print(f"calib measure: {len(st['per_picture'])} pictures measured (valid {shares}), each station the "
+              f"mean of its valid readings ({st['readings_per_valid_station']:.1f} a station on average)",
+              file=sys.stderr)
     rec = res.registration.recovered_markers
     if rec:
         print(f"calib measure: marker(s) {', '.join(map(str, rec))} read by their whole printed pattern where the "
