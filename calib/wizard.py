@@ -9,6 +9,7 @@ runs the same `calib` verb a user could run by hand, and the wizard prints it.
 from __future__ import annotations
 
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -165,25 +166,31 @@ def run_wizard(inp=sys.stdin, out=sys.stdout, port: str | None = None, baud: int
     widths = folder / "widths.csv"
     while not sess.done("measure", widths):
         r.say("\nPhotograph the print from above (all four square markers in view, no flash glare), "
-              "or scan it on a flatbed at 600 dpi.")
-        scan_answer = ask.ask("path to the photo or scan (or 'virtual' to let the virtual printer "
-                              "make one)", "virtual")
+              "or scan it on a flatbed at 600 dpi. On a textured plate take 3-5 photos from the same "
+              "place, the lamp moved around the print between them: its specks move, the bead does not.")
+        scan_answer = ask.ask("path to the photo or scan, or several separated by spaces (or 'virtual' "
+                              "to let the virtual printer make one)", "virtual")
         if scan_answer == "virtual":
-            scan = folder / "scan.png"
+            scans = [folder / "scan.png"]
             r.step("virtual print and scan", ["simulate", gcode, "--truth", _virtual_truth(profile),
-                                              "-o", scan])
+                                              "-o", scans[0]])
         else:
-            scan = Path(scan_answer).expanduser()
-            if not scan.is_file():
-                r.say(f"   {scan} is not a file; try again")
+            try:
+                scans = [Path(a).expanduser() for a in shlex.split(scan_answer)]
+            except ValueError as exc:     # an unclosed quote
+                r.say(f"   {exc}; try again")
+                continue
+            bad = [str(a) for a in scans if not a.is_file()]
+            if bad:
+                r.say(f"   {', '.join(bad)} {'is not a file' if len(bad) == 1 else 'are not files'}; try again")
                 continue
         try:
-            r.step("measuring", ["measure", scan, "--manifest", man, "-o", widths,
+            r.step("measuring", ["measure", *scans, "--manifest", man, "-o", widths,
                                  "--overlay", folder / "qa.png"])
         except UserError as exc:          # a bad photo: say why and ask for another
             r.say(f"   {exc}")
             continue
-        sess.remember("scan", str(scan))
+        sess.remember("scan", " ".join(shlex.quote(str(a)) for a in scans))
         sess.finish("measure")
     r.say(f"   check {folder / 'qa.png'}: the green outline must sit on your printed lines")
 

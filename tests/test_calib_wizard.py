@@ -60,6 +60,33 @@ def test_wizard_with_a_port_asks_before_heating_and_sends_nothing_on_no(tmp_path
     assert "not sent: print it when the printer is ready" in text
 
 
+def test_several_photos_in_one_answer_are_measured_together(tmp_path, monkeypatch):
+    """On a textured plate the wizard asks for 3-5 photos with the lamp moved: one answer
+    with several paths (quoted where a name has a space) is one `calib measure` of them
+    all (measure/stack.py); a path that is no file is said and asked again."""
+    import calib.demo
+
+    seen = []
+    real_step = calib.demo._Runner.step
+
+    def step(self, title, argv, ok_codes=(0,)):
+        if argv[0] == "measure":
+            seen.append([str(a) for a in argv])
+            raise UserError("stop here")
+        return real_step(self, title, argv, ok_codes)
+    monkeypatch.setattr(calib.demo._Runner, "step", step)
+    monkeypatch.chdir(tmp_path)
+    for name in ("a.jpg", "b c.jpg"):
+        (tmp_path / name).write_bytes(b"x")
+    out = io.StringIO()
+    answers = "direct_drive\nsession\nretract\nn\nnope.jpg a.jpg\na.jpg 'b c.jpg'\n"
+    with pytest.raises(UserError, match="ran out of answers"):
+        run_wizard(inp=io.StringIO(answers), out=out)
+    text = out.getvalue()
+    assert "nope.jpg is not a file; try again" in text and "lamp moved" in text
+    assert len(seen) == 1 and seen[0][1:3] == ["a.jpg", "b c.jpg"] and seen[0][3] == "--manifest"
+
+
 def test_a_second_run_resumes_without_rewriting_the_pattern(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(UserError, match="ran out of answers"):
