@@ -16,7 +16,8 @@ or fewer; ``CALIB_BENCH_E2E_BOWDEN_SEEDS`` for the third, a Bowden Adventurer 3 
 thermal ooze and back-pressure (data/truths/bowden.toml) on its default spiral, default 10
 or fewer; ``CALIB_BENCH_E2E_SPARKLE_SEEDS`` for the fourth, the back-pressure print
 photographed by the phone on a plate that sparkles (measure/phenomena.py), default 6 or
-fewer; ``CALIB_BENCH_E2E_DEMO_SEEDS`` for the fifth, `make demo`'s own setup (the Bowden
+fewer, and ``CALIB_BENCH_E2E_SPARKLE_STACK_SEEDS`` for the same print pictured 5 times
+with the lamp moved (measure/stack.py), default 6 or fewer; ``CALIB_BENCH_E2E_DEMO_SEEDS`` for the fifth, `make demo`'s own setup (the Bowden
 print on a flatbed with no phenomena, fitted with the demo's final model), default 10 or
 fewer; ``CALIB_BENCH_E2E_PATTERN_SEEDS`` for the seed-001 patterns, the RetractTest and the
 StartStopTest on a direct drive with a nonlinear nozzle, default 4 or fewer each (a
@@ -83,6 +84,12 @@ CASES = {
 # scatter): the widths err ~50 um per station, with a width-dependent mean the straight
 # line of scan_bias cannot take; what is asked is that no wrong value is trusted
 CASES["pa+backpressure, phone, direct_drive, all+sparkle"] = CASES["pa+backpressure"]
+# ... and the same print pictured 5 times from one camera, the lamp moved between the
+# pictures (render's light_seed), measured together (measure/stack.py): the specks average out
+SPARKLE_STACK = "pa+backpressure, phone, direct_drive, all+sparkle, spiral-step, 5 pictures"
+CASES[SPARKLE_STACK] = CASES["pa+backpressure"]
+#: pictures per case (1 unless named)
+PICTURES = {SPARKLE_STACK: 5}
 # `make demo`'s own setup: the Bowden print as the demo scans it (600 dpi flatbed, beads as
 # the measurement assumes them: no phenomena) and the model the demo ends with. The widths
 # are calibrated to ~1 um, so what is asked is the fit's own honesty: session 38 found
@@ -157,18 +164,20 @@ def measured_scan(case: str, seed: int, realism: str | None = None):
     realism = realism or _realism(case)
     from calib.commands.simulate import simulate_scan, write_image
     from fit.data import scan_from_table
-    from measure.pipeline import measure_scan
+    from measure.stack import measure_pictures
     from patterns.profile import load_profile
 
     values, pattern_kw, _ = CASES[case]
     spec, camera, profile = _truth_camera(case)
     prof = load_profile(profile)
     _, man = _pattern(case).generate(prof, **pattern_kw)
-    rendered, _ = simulate_scan(man, spec, values, camera, profile=prof, dpi=600.0, seed=seed,
-                                realism=realism, tilt_deg=35.0)
+    n_pic = PICTURES.get(case, 1)
+    renders = [simulate_scan(man, spec, values, camera, profile=prof, dpi=600.0, seed=seed, realism=realism,
+                             tilt_deg=35.0, light_seed=k if n_pic > 1 else None)[0] for k in range(n_pic)]
+    rendered = renders[0]
     with tempfile.TemporaryDirectory() as d:
-        res = measure_scan(write_image(os.path.join(d, "scan.jpg" if rendered.encoded else "scan.png"),
-                                       rendered), man)
+        res = measure_pictures([write_image(os.path.join(d, f"scan{k}.jpg" if r.encoded else f"scan{k}.png"), r)
+                                for k, r in enumerate(renders)], man)
     test = [t.id for t in man.tracks if t.kind == "test"]
     sel = np.isin(res.table.track, test)
     tb, tr = res.table.subset(sel), rendered.table.subset(sel)
@@ -277,6 +286,7 @@ def run() -> list[Row]:
     n_ph = int(os.environ.get("CALIB_BENCH_E2E_PHONE_SEEDS", str(min(n, 24))))
     n_bw = int(os.environ.get("CALIB_BENCH_E2E_BOWDEN_SEEDS", str(min(n, 10))))
     n_sp = int(os.environ.get("CALIB_BENCH_E2E_SPARKLE_SEEDS", str(min(n, 6))))
+    n_sps = int(os.environ.get("CALIB_BENCH_E2E_SPARKLE_STACK_SEEDS", str(min(n, 6))))
     n_demo = int(os.environ.get("CALIB_BENCH_E2E_DEMO_SEEDS", str(min(n, 10))))
     n_pat = int(os.environ.get("CALIB_BENCH_E2E_PATTERN_SEEDS", str(min(n, 4))))
     n_stop = int(os.environ.get("CALIB_BENCH_E2E_STOP_SEEDS", str(min(n, 2))))
@@ -286,7 +296,7 @@ def run() -> list[Row]:
     jobs = [(STOP_MID_PATH, s) for s in range(n_stop)] + \
         [(START_STOP, s) for s in range(n_pat)] + [(RETRACT, s) for s in range(n_pat)] + \
         [(bowden, s) for s in range(n_bw)] + [(DEMO, s) for s in range(n_demo)] + \
-        [(sparkle, s) for s in range(n_sp)] + \
+        [(SPARKLE_STACK, s) for s in range(n_sps)] + [(sparkle, s) for s in range(n_sp)] + \
         [("pa+backpressure", s) for s in range(n_bp)] + [("pa, phone", s) for s in range(n_ph)] + \
         [("pa", s) for s in range(n)]
     res = _run(jobs, workers=2)

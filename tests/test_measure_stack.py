@@ -52,6 +52,31 @@ def test_a_station_is_the_mean_of_the_valid_readings_where_most_pictures_read_it
     assert info["pictures"] == 3 and info["valid_per_picture"] == [n, n - 200, n - 400]
 
 
+def test_what_the_pictures_share_does_not_average_out_and_the_sd_says_so():
+    """Each reading errs by a part every picture shares (20 um: the plate's grain under the
+    bead) and a part of its own (40 um: the specks), each sd the whole 44.7 um. The own
+    share r = 0.8 is read from the readings' scatter about their mean, and the mean of 5
+    errs sqrt(20^2 + 40^2 / 5) = 26.8 um, which its sd says (sqrt(mean sd^2 / 5) = 20 um
+    would not)."""
+    from measure.stack import own_share
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    truth = np.tile(np.linspace(0.3, 1.2, n // 2), 2)
+    shared = rng.normal(0.0, 0.020, n)
+    tables = [_table(truth + shared, 0.040, rng, np.ones(n, bool)) for _ in range(5)]
+    for t in tables:
+        t.width_sd_mm[:] = np.hypot(0.020, 0.040)
+    W = np.array([t.width_mm for t in tables])
+    S = np.array([t.width_sd_mm for t in tables])
+    assert own_share(W, S, np.ones_like(W, bool)) == pytest.approx(0.8, abs=0.06)
+    comb, info = combine_tables(tables)
+    err = comb.width_mm - truth
+    assert np.std(err) == pytest.approx(np.sqrt(0.02 ** 2 + 0.04 ** 2 / 5), rel=0.06)
+    assert np.median(comb.width_sd_mm) == pytest.approx(np.sqrt(0.02 ** 2 + 0.04 ** 2 / 5), rel=0.1)
+    assert 0.6 <= np.mean(np.abs(err) <= comb.width_sd_mm) <= 0.76
+
+
 def test_pictures_of_different_patterns_are_not_combined():
     rng = np.random.default_rng(0)
     a = _table(np.full(100, 0.5), 0.01, rng, np.ones(100, bool))
