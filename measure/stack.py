@@ -201,12 +201,18 @@ def measure_pictures(image_paths, manifest, points=None, overlay_path=None, *,
     paths = list(image_paths)
     if len(paths) == 1:
         return measure_scan(paths[0], manifest, points, overlay_path, max_residual_mm=max_residual_mm)
+    from calib.progress import progress
+
     results, refused = [], []
+    # closed only when every picture was read: a bad file's one line stays the only one
+    bar = progress(total=len(paths), desc="measure", unit="picture")
     for p in paths:
         try:
             results.append((p, measure_scan(p, manifest, points, max_residual_mm=max_residual_mm)))
         except MeasureRefused as exc:
             refused.append((p, exc))
+        bar.update(1)
+    bar.close()
     if not results:
         raise refused[0][1]
     blocks = [r.summary["apparent_width"] for _, r in results]

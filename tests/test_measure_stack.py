@@ -175,3 +175,21 @@ def test_an_unreadable_picture_among_several_is_one_line_and_exit_2(lamp_moved, 
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "broken.jpg" in err
     assert not (d / "x.csv").exists()
+
+
+def test_a_picture_that_is_refused_is_left_out_and_said(lamp_moved, capsys):
+    """A picture of something else among the pictures of the print: measured without it,
+    with a warning that names it; the summary lists it."""
+    import cv2
+
+    d, _, paths, _ = lamp_moved
+    other = d / "other.png"
+    cv2.imwrite(str(other), np.random.default_rng(0).integers(0, 255, (900, 1200, 3), dtype=np.uint8))
+    out = d / "two.csv"
+    rc = main(["measure", paths[0], str(other), paths[1], "--manifest", str(d / "p.manifest.json"),
+               "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 0 and out.exists()
+    assert "other.png: left out" in err and "2 pictures measured" in err
+    summary = json.loads((d / "two.summary.json").read_text())
+    assert [x["image"] for x in summary["stack"]["left_out"]] == [str(other)]
