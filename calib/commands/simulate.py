@@ -51,6 +51,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         " ('all,sparkle': all and a textured plate's specks, which 'all' leaves out; "
                         "measure/phenomena.py); default: all for --camera phone, none for flatbed")
     p.add_argument("--seed", type=seed, default=0, help="random seed for the picture (default 0)")
+    p.add_argument("--light-seed", type=seed, default=None,
+                   help="where the lamp stands, apart from --seed: pictures that differ only in it are "
+                        "photos of one print from one camera with the lamp moved between them, which "
+                        "`calib measure` takes together (default: drawn with --seed)")
     p.add_argument("--effects", default=None, help="Python file with user effects named in TRUTH.toml")
     p.add_argument("--plot", action="store_true", help="also write SCAN.widths.png: true vs commanded widths")
     return p
@@ -183,7 +187,8 @@ def run(args) -> int:
     rendered, vp = simulate_scan(manifest, spec, values, args.camera, profile=profile, extra_effects=extra,
                                  dpi=args.dpi, tilt_deg=args.tilt, plate=args.plate, plastic=args.plastic,
                                  seed=args.seed, jpeg_quality=jq if ext == ".jpg" else None,
-                                 clutter=not args.no_clutter, progress=True, realism=realism)
+                                 clutter=not args.no_clutter, progress=True, realism=realism,
+                                 light_seed=args.light_seed)
     write_image(out, rendered)
     rendered.truth.image = out.name
     tpath = save_scan_truth(truth_path_for(out), rendered.truth)
