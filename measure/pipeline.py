@@ -155,7 +155,6 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
                         "includes it): a lossless flatbed scan (PNG/TIFF) measures tighter, and so do several "
                         "photos with the lamp moved between them, measured together (calib measure A.jpg B.jpg "
                         "C.jpg: each station the mean of its readings)")
-    flags = Counter(f for f in table.flag if f)
     ok = table.valid
     summary = {
         "schema": "calib.measure-summary/1",
@@ -167,16 +166,11 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
                          # changes along the track, width_sd_mm carries slope x this
                          "along_track_sd_mm": (float(np.median(meas.place_sd_mm[ok]))
                                                if meas.place_sd_mm is not None and ok.any() else None)},
-        "samples": int(len(table)),
-        "valid": int(ok.sum()),
-        "fraction_valid": valid_frac,
-        "flags": dict(sorted(flags.items())),
+        **table_figures(table),
         # valid stations whose edge pair carries a glare streak on one flank (measure/edges.py)
         "glare_streak_stations": int(meas.glare_streak[ok].sum()) if meas.glare_streak is not None else 0,
         # the light's axis as a bed direction (deg, 0-180) when the streaks agree on one
         "light_axis_deg": round(float(np.degrees(axis)) % 180.0, 1) if axis is not None else None,
-        "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
-        "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
         # the edge fits' sd scaled and floored by the widths' own scatter along the tracks
         # (measure/station_sd.py calibrated_sd); the fit's white term takes the own part
         "station_sd": {"scale": round(meas.sd_scale, 3), "floor_mm": round(meas.sd_floor_mm, 5),
@@ -184,11 +178,6 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         "blur_plane_px": [float(v) for v in meas.blur_plane_px],
         "measured_on": channel.to_dict(),
         "apparent_width": cal.to_dict(),
-        "per_track": {str(t): {"valid": int((ok & (table.track == t)).sum()),
-                               "samples": int((table.track == t).sum()),
-                               "width_mm_median": (float(np.median(table.width_mm[ok & (table.track == t)]))
-                                                   if (ok & (table.track == t)).any() else None)}
-                      for t in np.unique(table.track)},
         "warnings": warnings,
     }
     if reg.info:
@@ -215,6 +204,24 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         from measure.overlay import draw_overlay, save_overlay
         save_overlay(overlay_path, draw_overlay(color, manifest, reg, meas))
     return result
+
+
+def table_figures(table: WidthTable) -> dict:
+    """The summary's figures of a widths table: samples, valid (count and share), flags,
+    median width and sd of the valid stations (mm), and per track the same."""
+    ok = table.valid
+
+    def median(x, m):
+        return float(np.median(x[m])) if m.any() else None
+    return {"samples": int(len(table)), "valid": int(ok.sum()),
+            "fraction_valid": float(np.mean(ok)) if len(table) else 0.0,
+            "flags": dict(sorted(Counter(f for f in table.flag if f).items())),
+            "width_mm_median": median(table.width_mm, ok),
+            "width_sd_mm_median": median(table.width_sd_mm, ok),
+            "per_track": {str(t): {"valid": int((ok & (table.track == t)).sum()),
+                                   "samples": int((table.track == t).sum()),
+                                   "width_mm_median": median(table.width_mm, ok & (table.track == t))}
+                          for t in np.unique(table.track)}}
 
 
 def _resolution_px_per_mm(reg, table) -> float:

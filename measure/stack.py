@@ -196,7 +196,7 @@ def measure_pictures(image_paths, manifest, points=None, overlay_path=None, *,
     The result's registration, measurement and colour are the first measured picture's (the
     QA overlay shows it); its summary has a ``stack`` block with each picture's figures.
     """
-    from measure.pipeline import MeasureRefused, MeasureResult, measure_scan
+    from measure.pipeline import MeasureRefused, MeasureResult, measure_scan, table_figures
 
     paths = list(image_paths)
     if len(paths) == 1:
@@ -223,7 +223,6 @@ def measure_pictures(image_paths, manifest, points=None, overlay_path=None, *,
         table.width_mm = np.where(table.valid & (table.width_mm > 0), table.width_mm - cal["offset_mm"], table.width_mm)
     first = results[0][1]
     ok = table.valid
-    flags = Counter(f for f in table.flag if f)
     warnings = [f"{p}: left out, {exc}" for p, exc in refused]
     warnings += _distinct([w for _, r in results for w in r.summary["warnings"]])
     info["per_picture"] = [{"image": str(p), "fraction_valid": r.summary["fraction_valid"],
@@ -233,21 +232,12 @@ def measure_pictures(image_paths, manifest, points=None, overlay_path=None, *,
     summary = dict(first.summary)
     summary.update({
         "images": [str(p) for p, _ in results],
-        "samples": int(len(table)), "valid": int(ok.sum()),
-        "fraction_valid": float(np.mean(ok)) if len(table) else 0.0,
-        "flags": dict(sorted(flags.items())),
+        **table_figures(table),
         # each picture has its own light: no one axis for the combined widths
         "light_axis_deg": None,
-        "width_mm_median": float(np.median(table.width_mm[ok])) if ok.any() else None,
-        "width_sd_mm_median": float(np.median(table.width_sd_mm[ok])) if ok.any() else None,
         "station_sd": {**info["station_sd"],
                        "own_mm_median": float(np.median(table.width_sd_own_mm[ok])) if ok.any() else None},
         "apparent_width": cal,
-        "per_track": {str(t): {"valid": int((ok & (table.track == t)).sum()),
-                               "samples": int((table.track == t).sum()),
-                               "width_mm_median": (float(np.median(table.width_mm[ok & (table.track == t)]))
-                                                   if (ok & (table.track == t)).any() else None)}
-                      for t in np.unique(table.track)},
         "warnings": warnings,
         "stack": info,
     })
