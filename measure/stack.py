@@ -121,9 +121,10 @@ def own_share(W, S, V, min_stations: int = 30) -> float:
     errors per picture: measure/station_sd.py). Robust: r = median(s^2 / mean(sd_i^2)) /
     (median(chi2_(n-1)) / (n - 1)). ``W``, ``S``, ``V``: (pictures, stations) readings (mm),
     sds (mm), valid. 1 (all own) with fewer than ``min_stations`` stations read by all.
-    On bench_realism's sparkling phone scene (5 pictures, seed 1) the mean of the readings
-    erred 38 um where sqrt(mean(sd_i^2) / 5) said 23: two fifths of each reading's variance
-    was shared (the seed's plastic shows the plate's grain through its flanks)."""
+    On bench_realism's sparkling phone scene (5 pictures, seeds 0 and 1) r reads 0.92 and
+    0.91, and the combined stations' errors within their sd went 0.58 -> 0.63 (seed 0);
+    what the pictures share beyond it is mostly a width-dependent offset, the fit's
+    scan_bias and view effects, which no station's sd is meant to hold."""
     from scipy import stats
 
     n = W.shape[0]
