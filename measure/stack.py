@@ -206,7 +206,7 @@ def measure_pictures(image_paths, manifest, points=None, overlay_path=None, *,
 
     results, refused = [], []
     # closed only when every picture was read: a bad file's one line stays the only one
-    bar = progress(total=len(paths), desc="measure", unit="picture")
+    bar = progress(total=len(paths), desc="measure", unit="pictures")
     for p in paths:
         try:
             results.append((p, measure_scan(p, manifest, points, max_residual_mm=max_residual_mm)))
