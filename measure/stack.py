@@ -79,7 +79,8 @@ def combine_tables(tables: list[WidthTable], offsets_mm=None) -> tuple[WidthTabl
     # each reading's error: a part the pictures share (the plate's grain, the translucent
     # flanks, the blur) and a part of its own (the specks, the sensor); only the second
     # averages out, so var(mean) = mean(sd_i^2) (1 - r + r / k), r the own part's share
-    r = own_share(W, S, V)
+    ratio = scatter_ratio(W, S, V)
+    r = float(np.clip(ratio, 0.0, 1.0))
     shrink = (1.0 - r) + r / k
     sd = np.sqrt(np.where(V, S ** 2, 0.0).sum(axis=0) / k * shrink)
     sd_own = np.sqrt(np.where(V, S_own ** 2, 0.0).sum(axis=0) / k * shrink)
@@ -106,16 +107,29 @@ def combine_tables(tables: list[WidthTable], offsets_mm=None) -> tuple[WidthTabl
     table = WidthTable(track=ref.track, s_mm=ref.s_mm, x_mm=ref.x_mm, y_mm=ref.y_mm, t_s=ref.t_s,
                        width_mm=w, width_sd_mm=sd, valid=valid, flag=flag, blur_mm=blur,
                        width_sd_own_mm=sd_own, width_corr_prev=np.nan_to_num(rho))
-    info = {"pictures": n, "min_share": MIN_SHARE, "own_share": round(float(r), 3),
+    info = {"pictures": n, "min_share": MIN_SHARE, "own_share": round(r, 3), "scatter_ratio": round(ratio, 3),
             "valid_per_picture": [int(v.sum()) for v in V],
             "readings_per_valid_station": float(np.mean(nv[valid])) if valid.any() else 0.0,
             "station_sd": {"scale": round(k_sd, 3), "floor_mm": round(f_sd, 5)}}
     return table, info
 
 
+#: Pictures whose readings of one station scatter about their mean this many times more
+#: than each picture's sds allow are not of one print (or not of one state of it): said.
+#: Of one print the ratio reads 0.88-0.93 (own_share's, unclipped, on the sparkling scene).
+DISAGREE_RATIO = 2.0
+
+
 def own_share(W, S, V, min_stations: int = 30) -> float:
-    """The share r (0-1) of a reading's variance that is its picture's own, from how far
-    the pictures' readings of one station scatter about their mean: at a station every
+    """:func:`scatter_ratio` clipped to 0-1: the share of a reading's variance that is its
+    picture's own."""
+    return float(np.clip(scatter_ratio(W, S, V, min_stations), 0.0, 1.0))
+
+
+def scatter_ratio(W, S, V, min_stations: int = 30) -> float:
+    """How far the pictures' readings of one station scatter about their mean, in units of
+    what each picture's sds allow; of one print, the share r (0-1) of a reading's variance
+    that is its picture's own (more than 1: the pictures disagree). At a station every
     picture read, the sample variance s^2 of its n readings estimates the own part, r
     sd^2 on average, and mean(sd_i^2) the whole (the stations' sds are calibrated to their
     errors per picture: measure/station_sd.py). Robust: r = median(s^2 / mean(sd_i^2)) /
@@ -136,8 +150,7 @@ def own_share(W, S, V, min_stations: int = 30) -> float:
     ok = whole > 0
     if ok.sum() < min_stations:
         return 1.0
-    ratio = np.median(between[ok] / whole[ok]) / (stats.chi2.median(n - 1) / (n - 1))
-    return float(np.clip(ratio, 0.0, 1.0))
+    return float(np.median(between[ok] / whole[ok]) / (stats.chi2.median(n - 1) / (n - 1)))
 
 
 def combined_calibration(blocks: list[dict]) -> dict:
@@ -225,6 +238,11 @@ def measure_pictures(image_paths, manifest, points=None, overlay_path=None, *,
     first = results[0][1]
     ok = table.valid
     warnings = [f"{p}: left out, {exc}" for p, exc in refused]
+    if info["scatter_ratio"] > DISAGREE_RATIO:
+        # averaging two prints (two flows, two settings) would give widths of neither
+        warnings.insert(0, f"the pictures' readings of one station scatter {info['scatter_ratio']:.1f}x what each "
+                           "picture's sds allow: are they all of this one print? Widths of different prints "
+                           "averaged are the widths of neither; measure each print's pictures on their own")
     warnings += _distinct([w for _, r in results for w in r.summary["warnings"]])
     info["per_picture"] = [{"image": str(p), "fraction_valid": r.summary["fraction_valid"],
                             "residual_mm": r.registration.residual_mm,

@@ -193,3 +193,32 @@ def test_a_picture_that_is_refused_is_left_out_and_said(lamp_moved, capsys):
     assert "other.png: left out" in err and "2 pictures measured" in err
     summary = json.loads((d / "two.summary.json").read_text())
     assert [x["image"] for x in summary["stack"]["left_out"]] == [str(other)]
+
+
+def test_pictures_of_two_prints_are_said_to_disagree(monkeypatch):
+    """Two prints of one pattern (the second 50 um wider: another flow) photographed as if
+    one: their readings of a station scatter far beyond each picture's sds (5 um), and the
+    summary says so first. Pictures of one print read a ratio near or under 1."""
+    import measure.pipeline
+    from measure.pipeline import MeasureResult
+    from measure.stack import DISAGREE_RATIO, measure_pictures, scatter_ratio
+
+    rng = np.random.default_rng(2)
+    n = 600
+    truth = np.tile(np.linspace(0.3, 1.2, n // 2), 2)
+    one = [_table(truth, 0.005, rng, np.ones(n, bool)) for _ in range(3)]
+    W = np.array([t.width_mm for t in one])
+    assert scatter_ratio(W, np.full_like(W, 0.005), np.ones_like(W, bool)) < 1.3
+    two = one[:2] + [_table(truth + 0.05, 0.005, rng, np.ones(n, bool))]
+    cal = {"applied": False, "prior_ok": False, "offset_mm": None, "offset_sd_mm": None}
+    fake = iter(two)
+
+    def measure_scan(path, manifest, points=None, overlay_path=None, *, max_residual_mm=None):
+        t = next(fake)
+        return MeasureResult(table=t, registration=type("R", (), {"residual_mm": 0.01})(),
+                             summary={"apparent_width": dict(cal), "warnings": [], "fraction_valid": 1.0,
+                                      "width_sd_mm_median": 0.005})
+    monkeypatch.setattr(measure.pipeline, "measure_scan", measure_scan)
+    res = measure_pictures(["a.jpg", "b.jpg", "c.jpg"], manifest=None)
+    assert res.summary["stack"]["scatter_ratio"] > DISAGREE_RATIO
+    assert "are they all of this one print" in res.summary["warnings"][0]
