@@ -59,6 +59,13 @@ SCENES = [("flatbed, none (erf beads)", "flatbed", "none", "dark", "opaque", "bo
     # photos' width scatter); not in "all", so the rows above are without it
     ("phone 35 deg, all + sparkle (textured plate under a lamp), Bowden", "phone", "all,sparkle", "dark",
      "opaque", "bowden"),
+    # the lamp's cast shadows (measure/phenomena.py shadows): a flatbed's lamp at 45 deg shades
+    # the plate beside every bead that lies across it; not in "all" either
+    ("flatbed, shadows", "flatbed", "shadows", "dark", "opaque", "bowden"),
+    ("flatbed, shadows, light plate, direct drive", "flatbed", "shadows", "light", "opaque", "direct"),
+    ("flatbed, all + shadows, light plate (a PNG scan), direct drive", "flatbed", "all-but-jpeg,shadows", "light",
+     "opaque", "direct"),
+    ("phone 35 deg, all + shadows, direct drive", "phone", "all,shadows", "dark", "opaque", "direct"),
 ]
 #: Scenes pictured several times from one camera, the lamp moved between the pictures
 #: (render's light_seed), measured together (measure/stack.py): (label, camera, realism,
@@ -76,8 +83,8 @@ def scene(camera: str, realism: str, plate: str, plastic: str, seed: int, tilt_d
 
     from measure.phenomena import PHENOMENA
 
-    if realism == "all-but-jpeg":
-        realism = ",".join(p for p in PHENOMENA if p != "jpeg")
+    if realism.startswith("all-but-jpeg"):
+        realism = realism.replace("all-but-jpeg", ",".join(p for p in PHENOMENA if p != "jpeg"))
     prof, truth = PRINTERS[printer]
     _, man = spiral_step.generate(prof, widths_mm=WIDTHS_MM, speeds_mm_s=(20.0, 40.0))[:2]
     spec, values, _ = load_truth(data_dir() / "truths" / truth, man.printer)

@@ -37,6 +37,15 @@ cameras do, so ``make bench`` can show one row per phenomenon and one with all o
                at 0.15 mm specks of 0.5 reflectance, 139 um at 0.8). Not in ``all``
                (EXTRA_PHENOMENA): every other bench figure was measured without it; its
                own bench row says what it does to the measurement.
+  shadows      the lamp's cast shadows: a bead h tall, lit from elevation e, shades the
+               plate beside it on the side away from the lamp out to h / tan(e) (flatbed:
+               the scanner's lamp at 45 deg, 0.2-0.3 mm; phone: a lamp at 30-60 deg, up to
+               0.5 mm), the more the more the bead lies across the light. In shadow the
+               surface keeps only the room's diffuse light (1 - ``shadow_depth`` of its
+               brightness) and the plate's specks go out. A height field ray-marched
+               toward the lamp (:func:`cast_shadow`); the measurement's edge model has no
+               term for it. Not in ``all`` (EXTRA_PHENOMENA): its own bench rows say what
+               it does first
   light        strongly uneven light: 40 % gradient, 45 % vignetting, a soft hotspot
   defocus      blur that grows across the image (depth of field of a tilted phone, a
                print not flat on the glass): sigma 0.6 -> 2.4 px
@@ -64,7 +73,7 @@ import numpy as np
 PHENOMENA = ("profile", "translucent", "glare", "strings", "raster_gaps", "grain", "logos", "light",
              "defocus", "jpeg", "irregular")
 #: Phenomena known by name but not part of "all" (see ``sparkle`` above).
-EXTRA_PHENOMENA = ("sparkle",)
+EXTRA_PHENOMENA = ("sparkle", "shadows")
 #: Phenomena that need the virtual printer's deposition (not only the stations' widths).
 NEEDS_PHYSICS = ("strings", "raster_gaps")
 
@@ -77,6 +86,8 @@ class Realism:
     ambient           shading floor a of the flanks (fraction of the crown's brightness)
     glare_dn          peak specular highlight (DN, 0-255 scale) before clipping
     sparkle           brightest speck of ``sparkle``, a reflectance (0-1) added to the plate's
+    shadow_depth      share of a surface's brightness a cast shadow takes (``shadows``);
+                      None = seeded, 0.3-0.6 (a phone under a room lamp), 0.5 (a flatbed)
     jpeg_quality      quality used by ``jpeg``
     irregular_*       strengths of ``irregular`` (relative, mm) and their correlation lengths (mm)
     """
@@ -86,6 +97,7 @@ class Realism:
     ambient: float = 0.35
     glare_dn: float = 160.0
     sparkle: float = 0.3
+    shadow_depth: float | None = None
     jpeg_quality: int = 70
     irregular_rel: float = 0.012
     irregular_corr_mm: float = 20.0
@@ -98,8 +110,8 @@ class Realism:
             raise ValueError(f"unknown phenomenon {sorted(unknown)[0]!r}; known: "
                              f"{', '.join(PHENOMENA + EXTRA_PHENOMENA)}")
         en = set(self.enabled)
-        if {"translucent", "glare"} & en:
-            en.add("profile")   # both are properties of the bead's cross-section
+        if {"translucent", "glare", "shadows"} & en:
+            en.add("profile")   # all are properties of the bead's cross-section
         object.__setattr__(self, "enabled", frozenset(en))
 
     def __contains__(self, name: str) -> bool:
@@ -334,18 +346,56 @@ def defocus_map(W: int, H: int, rng, lo_px: float = 0.6, hi_px: float = 2.4) -> 
     return (lo_px + (hi_px - lo_px) * 0.5 * (t + 1.0)).astype(np.float32)
 
 
-def half_vector(camera_kind: str, rng) -> np.ndarray:
-    """Blinn-Phong half vector (unit, bed frame, z up) between the light and the view.
+def light_vector(camera_kind: str, rng) -> np.ndarray:
+    """Unit vector toward the lamp (bed frame, z up).
 
     Flatbed: the lamp shines from +-y at ~45 deg, the sensor looks straight down. Phone:
-    a window or ceiling light at 30-60 deg elevation, seeded azimuth; the camera looks
-    down at the tilt it was held at (the view's small x/y part is neglected: the
-    highlight's position moves by a fraction of a bead, its side does not).
+    a window or ceiling light at 30-60 deg elevation, seeded azimuth.
     """
     if camera_kind == "flatbed":
-        light = np.array([0.0, np.sin(np.deg2rad(45)) * (1 if rng.uniform() < 0.5 else -1), np.cos(np.deg2rad(45))])
-    else:
-        el, az = np.deg2rad(rng.uniform(30, 60)), rng.uniform(0, 2 * np.pi)
-        light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    hv = light + np.array([0.0, 0.0, 1.0])
+        return np.array([0.0, np.sin(np.deg2rad(45)) * (1 if rng.uniform() < 0.5 else -1), np.cos(np.deg2rad(45))])
+    el, az = np.deg2rad(rng.uniform(30, 60)), rng.uniform(0, 2 * np.pi)
+    return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def half_vector(light: np.ndarray) -> np.ndarray:
+    """Blinn-Phong half vector (unit, bed frame) between the light and the view, the
+    camera looking down (the view's small x/y part at a phone's tilt is neglected: the
+    highlight's position moves by a fraction of a bead, its side does not)."""
+    hv = np.asarray(light, float) + np.array([0.0, 0.0, 1.0])
     return hv / np.linalg.norm(hv)
+
+
+def cast_shadow(height_mm: np.ndarray, step_px: np.ndarray, light: np.ndarray, *, step_mm: float,
+                soft_mm: float = 0.01) -> np.ndarray:
+    """Share of each pixel (0-1) in the shadow the height field casts under a distant lamp.
+
+    height_mm   (H, W) plastic thickness above the plate (mm) at each pixel
+    step_px     (H, W, 2) image offset (px) of one ``step_mm`` on the bed toward the lamp
+                at each pixel (the camera's Jacobian times the lamp's horizontal direction)
+    light       unit vector toward the lamp (bed frame, z up)
+
+    A point at height z is in shadow when the surface d mm toward the lamp stands higher
+    than z + d tan(e), e the lamp's elevation (ray marching over d = step_mm, 2 step_mm,
+    ... up to the tallest point's reach). The margin is turned into a share over
+    ``soft_mm`` of height: the lamp is not a point, and a pixel is not either.
+    """
+    import cv2
+
+    l = np.asarray(light, float)
+    horiz = float(np.hypot(l[0], l[1]))
+    top = float(np.max(height_mm)) if height_mm.size else 0.0
+    if horiz < 1e-6 or top <= 0.0:
+        return np.zeros(height_mm.shape, np.float32)
+    tan_e = l[2] / horiz
+    n = int(np.ceil(top / tan_e / step_mm))
+    H, W = height_mm.shape
+    u = np.arange(W, dtype=np.float32)[None, :]
+    v = np.arange(H, dtype=np.float32)[:, None]
+    z = height_mm.astype(np.float32)
+    margin = np.full((H, W), -np.inf, np.float32)
+    for k in range(1, n + 1):
+        ahead = cv2.remap(z, u + k * step_px[..., 0], v + k * step_px[..., 1], cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        np.maximum(margin, ahead - z - np.float32(k * step_mm * tan_e), out=margin)
+    return np.clip(margin / np.float32(soft_mm), 0.0, 1.0)

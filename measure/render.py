@@ -737,11 +737,13 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     prep = _segments(manifest, widths, camera, ss, edge_mm, dep, blobs)
     shade_s = spec_s = None
     attenuation = None
+    height_px = None
     if prep is not None and "profile" in realism:
         seg, segw, bbox, starts, sig, hs = prep
         ppmm = float(np.median(camera.px_per_mm(seg[:, :2])))
         aa = np.full(len(hs), 1.0 / (ss * ppmm))
-        hv = ph.half_vector(camera.kind, lamp_p)
+        light = ph.light_vector(camera.kind, lamp_p)
+        hv = ph.half_vector(light)
         p_spec = float(prng.uniform(40.0, 80.0))
         thick = np.zeros_like(alpha_s)
         shade_s = np.zeros_like(alpha_s)
@@ -753,6 +755,9 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         if "translucent" in realism:
             attenuation = realism.attenuation_mm or float(prng.uniform(0.08, 0.15))
             alpha_s = alpha_s * (1.0 - np.exp(-thick / np.float32(attenuation)))
+        if "shadows" in realism:           # the height field the lamp's shadows are cast from
+            height_px = thick.reshape(H, ss, W, ss).mean(axis=(1, 3)) if ss > 1 else thick.copy()
+            shadow_step_mm = 0.5 / ppmm
         del thick
         shade_s *= alpha_s                 # plastic radiance weight: coverage x Lambert shade
         spec_s *= alpha_s if "glare" in realism else 0.0
@@ -788,6 +793,14 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     # the specks are the grain's facets that mirror the lamp: another lamp, other facets
     speck_seed = int(seed) if light_seed is None else int(seed) + 104729 * (int(light_seed) + 1)
     sparkle = ph.pei_sparkle(Xc, Yc, seed=speck_seed) * np.float32(realism.sparkle) if "sparkle" in realism else None
+    shadow = None
+    if height_px is not None:
+        shadow = ph.cast_shadow(height_px, _toward_lamp_px(camera, Xc, Yc, light, shadow_step_mm), light,
+                                step_mm=shadow_step_mm)
+        # its own stream: switching shadows on leaves every other draw as it was
+        srng = np.random.default_rng([int(seed if light_seed is None else light_seed), 23])
+        shadow_depth = realism.shadow_depth or (0.5 if camera.kind == "flatbed" else float(srng.uniform(0.3, 0.6)))
+        del height_px
     del Xc, Yc
     bar.update()
     # 4. compose (linear in coverage), light, blur
@@ -796,6 +809,11 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
         opacity = 1.0                      # the thickness sets the opacity (Beer-Lambert)
     a = (opacity * alpha)[..., None]
     img = back * (1.0 - a) + col[None, None, :] * (opacity * radiance)[..., None]
+    if shadow is not None:                 # the lamp's share of the light is gone in shadow
+        img *= (1.0 - np.float32(shadow_depth) * shadow)[..., None]
+        lit = 1.0 - shadow
+        sparkle = sparkle * lit if sparkle is not None else None
+        specular = specular * lit if specular is not None else None
     if sparkle is not None:                # the lamp mirrored by the plate, where it is seen
         img += (sparkle[..., None] * (1.0 - a))
     del back, a, sparkle
@@ -828,6 +846,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
                 "jpeg_quality": jpeg_quality, "clutter": bool(clutter), "supersample": ss,
                 "edge_mm": edge_mm, "edge_softness_per_height": EDGE_SOFTNESS_PER_HEIGHT,
                 "realism": realism.label, "attenuation_mm": attenuation,
+                "shadow_depth": shadow_depth if shadow is not None else None,
                 "lighting": {"exposure": lighting.exposure, "gradient": list(map(float, lighting.gradient)),
                              "vignetting": lighting.vignetting, "glare": lighting.glare},
                 "width_definition": ("footprint: the bead's widest point (physical cross-section)"
@@ -850,6 +869,20 @@ def true_widths(manifest: Manifest, widths: WidthTable | None) -> WidthTable:
     n = len(smp)
     return WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
                       width_mm=smp.width_nominal_mm, width_sd_mm=np.zeros(n), valid=np.ones(n, bool))
+
+
+def _toward_lamp_px(camera: Camera, Xc, Yc, light, step_mm: float, every_px: int = 16) -> np.ndarray:
+    """(H, W, 2) image offset (px) of ``step_mm`` on the bed toward the lamp, per pixel:
+    the camera's Jacobian at the pixel's bed point times the lamp's horizontal direction,
+    evaluated every ``every_px`` pixels and interpolated (it varies over the picture's
+    width, not over a bead's)."""
+    H, W = Xc.shape
+    xs, ys = Xc[::every_px, ::every_px], Yc[::every_px, ::every_px]
+    d = np.asarray(light[:2], float)
+    d = d / max(float(np.hypot(*d)), 1e-12) * step_mm
+    J = camera.jacobian(np.column_stack([xs.ravel(), ys.ravel()]).astype(float))
+    off = (J @ d).reshape(xs.shape + (2,)).astype(np.float32)
+    return np.dstack([cv2.resize(off[..., k], (W, H), interpolation=cv2.INTER_LINEAR) for k in (0, 1)])
 
 
 def _light_field(W, H, lighting: Lighting, rng) -> np.ndarray:

@@ -6,7 +6,8 @@ import pytest
 
 from calib.cli import main
 from measure.calibrate import calibrate, reference_stations
-from measure.phenomena import PHENOMENA, Realism, deposit_pieces, irregular_widths, pei_grain, pei_sparkle
+from measure.phenomena import (PHENOMENA, Realism, cast_shadow, deposit_pieces, irregular_widths, pei_grain,
+                               pei_sparkle)
 
 
 # -- calibration: known answers ---------------------------------------------------------
@@ -478,6 +479,58 @@ def test_realism_names():
     both = Realism.parse("all,sparkle")
     assert both.enabled == frozenset(PHENOMENA) | {"sparkle"} and both.label == "all,sparkle"
     assert Realism.parse(both.label) == both
+
+
+def test_shadows_are_known_by_name_kept_out_of_all_and_need_the_beads_profile():
+    assert "shadows" not in Realism.parse("all")
+    r = Realism.parse("all,shadows")
+    assert "profile" in Realism.parse("shadows") and r.label == "all,shadows" and Realism.parse(r.label) == r
+
+
+def _light(elevation_deg, azimuth_deg):
+    e, a = np.deg2rad(elevation_deg), np.deg2rad(azimuth_deg)
+    return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+
+@pytest.mark.parametrize("elevation_deg", [30.0, 45.0, 60.0])
+def test_a_wall_casts_a_shadow_h_over_tan_elevation_long_away_from_the_lamp(elevation_deg):
+    """A step of height h (x < 0) lit from -x: the plate at 0 < x < h / tan(e) is in shadow,
+    beyond it lit; lit along the wall or from straight above, nothing is."""
+    px_mm, h = 0.01, 0.3
+    x = (np.arange(200) - 50) * px_mm
+    height = np.where(x < 0, h, 0.0)[None, :].repeat(5, axis=0)
+    step_mm = 0.5 * px_mm
+    toward = np.zeros(height.shape + (2,), np.float32)
+    toward[..., 0] = -step_mm / px_mm             # the lamp at -x: half a pixel per step
+    s = cast_shadow(height, toward, _light(elevation_deg, 180.0), step_mm=step_mm)[2]
+    reach = h / np.tan(np.deg2rad(elevation_deg))
+    plate = x >= 0
+    assert np.all(s[plate & (x < reach - 0.02)] > 0.99)
+    assert np.all(s[plate & (x > reach + 0.02)] == 0.0)
+    assert np.all(s[~plate] == 0.0)               # the wall's own top is lit
+    along = np.zeros_like(toward)
+    along[..., 1] = toward[..., 0]                # the lamp's direction along the wall: image rows
+    assert not cast_shadow(height, along, _light(elevation_deg, 90.0), step_mm=step_mm).any()
+    assert not cast_shadow(height, toward, np.array([0.0, 0.0, 1.0]), step_mm=step_mm).any()
+
+
+def test_a_rounded_bead_shades_the_plate_to_the_tangent_of_its_flank():
+    """The slicer's rounded bead (elliptical flank, lateral radius h/2, height h) lit across at
+    45 deg: the ray grazing its flank meets the plate max_t [z(t) - t] beyond the footprint's
+    edge (z(t) = h sqrt(1 - (1 - t / r)^2)), 0.185 mm for h = 0.3 mm, not the wall's h."""
+    px_mm, h, r = 0.002, 0.3, 0.15
+    x = (np.arange(600) - 300) * px_mm           # the footprint's edge at x = 0, bead at x < 0
+    t = np.clip(-x, 0.0, None)
+    height = np.where(t < r, h * np.sqrt(np.clip(1 - (1 - t / r) ** 2, 0, 1)), h)
+    height = np.where(x < 0, height, 0.0)[None, :].repeat(3, axis=0)
+    toward = np.zeros(height.shape + (2,), np.float32)
+    toward[..., 0] = -0.5
+    s = cast_shadow(height, toward, _light(45.0, 180.0), step_mm=0.5 * px_mm)[1]
+    tt = np.linspace(0, r, 10001)
+    reach = np.max(h * np.sqrt(1 - (1 - tt / r) ** 2) - tt)
+    assert abs(reach - 0.185) < 0.002
+    edge = x[np.nonzero((x > 0) & (s < 0.5))[0][0]]
+    assert abs(edge - reach) < 0.01
 
 
 def test_pei_grain_is_a_plate_property_of_the_right_scale():

@@ -48,7 +48,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--realism", default="default", metavar="LIST",
                    help="what real prints and cameras do that the measurement does not assume: "
                         "'all', 'none', or a comma list of " + ", ".join(_phenomena()) +
-                        " ('all,sparkle': all and a textured plate's specks, which 'all' leaves out; "
+                        " ('all,sparkle': all and a textured plate's specks; 'all,shadows': all and the "
+                        "lamp's cast shadows; 'all' leaves both out; "
                         "measure/phenomena.py); default: all for --camera phone, none for flatbed")
     p.add_argument("--seed", type=seed, default=0, help="random seed for the picture (default 0)")
     p.add_argument("--light-seed", type=seed, default=None,
