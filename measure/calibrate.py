@@ -195,6 +195,9 @@ class WidthCalibration:
                     edge blur (mm)
     note            one line for the summary and the CLI
     warnings        e.g. a width still changing inside a settled section
+    heading_levels_mm  per test-track station, what its heading adds to its apparent width
+                    beyond the test tracks' mean (mm), taken off with the offset where the
+                    lamp's shadows were found (measure/pipeline.py); None elsewhere
     """
 
     offset_mm: float = float("nan")
@@ -215,9 +218,13 @@ class WidthCalibration:
     blur_offset_sd_mm: float = float("nan")
     note: str = ""
     warnings: list = field(default_factory=list)
+    heading_levels_mm: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        levels = d.pop("heading_levels_mm")
+        if levels is not None:          # per station: its range, not the array
+            d["heading_levels_range_mm"] = [round(float(np.min(levels)), 5), round(float(np.max(levels)), 5)]
         for k, v in list(d.items()):
             if isinstance(v, float) and not np.isfinite(v):
                 d[k] = None
@@ -368,9 +375,12 @@ def _peer_cells(track, t_s, nominal_mm):
 
 
 def heading_shift(track, s_mm, t_s, nominal_mm, width_mm, valid, nx, ny, ref_nx, ref_ny,
-                  blocks: int = HEADING_JACKKNIFE_BLOCKS):
+                  blocks: int = HEADING_JACKKNIFE_BLOCKS, levels: bool = False):
     """How much wider the test tracks read at the reference's heading than on average (mm):
-    (shift, sd, a, b), or None when their headings do not span the half-turn.
+    (shift, sd, a, b), or None when their headings do not span the half-turn; with
+    ``levels`` also each station's h(theta) less the test tracks' mean (mm, (N,)), what its
+    own heading adds to its apparent width (measure/pipeline.py takes it out where the
+    lamp's shadows were found: measure/shadows.py).
 
     The apparent width depends on the heading theta of a bead's normal, w_app = w + h(theta):
     a photo at an angle foreshortens a bead across its axis by how its normal lies to the
@@ -454,7 +464,11 @@ def heading_shift(track, s_mm, t_s, nominal_mm, width_mm, valid, nx, ny, ref_nx,
         jack.append(shift(u))
     jack = np.asarray(jack)
     sd = float(np.sqrt((len(jack) - 1) / len(jack) * np.sum((jack - jack.mean()) ** 2)))
-    return shift(use), sd, float(coef[0]), float(coef[1])
+    out = (shift(use), sd, float(coef[0]), float(coef[1]))
+    if levels:
+        hb = solve(use, D)[0]
+        out += (hb[bins] - np.mean(hb[bins[use]]),)
+    return out
 
 
 def _heading_bins(theta, ref_theta, width_deg: float = HEADING_BIN_DEG):

@@ -149,11 +149,22 @@ def _erf_gauss(z):  # pragma: no cover - numba
     return math.erf(z), _TWO_OVER_SQRTPI * math.exp(-z * z)
 
 
+@njit(cache=True, inline="always")
+def _norm_cdf_pdf(z):  # pragma: no cover - numba
+    """(Phi(z), phi(z)) of the standard normal, exact to double precision."""
+    if z > 2 * _ERF_CUT:
+        return 1.0, 0.0
+    if z < -2 * _ERF_CUT:
+        return 0.0, 0.0
+    return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0))), math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+
+
 @njit(cache=True, parallel=True)
-def _normal_kernel(t, y, wts, p, rows, fixed_s, side, cost, JTJ, JTr):  # pragma: no cover - numba
+def _normal_kernel(t, y, wts, p, rows, fixed_s, side, shade, cost, JTJ, JTr):  # pragma: no cover - numba
     """For profiles ``rows``: the weighted residual sum of squares ``cost`` and the normal
-    equations J^T W J, J^T W r of the edge pair (plus the streak when ``side`` != 0) at
-    parameters p[rows], written into row ii of the outputs for profile rows[ii].
+    equations J^T W J, J^T W r of the edge pair (plus the streak when ``side`` != 0, the
+    shadow's shelf when ``shade`` != 0) at parameters p[rows], written into row ii of the
+    outputs for profile rows[ii].
 
     Fused and compiled: evaluating the model and Jacobian as (N, M, k) numpy arrays and
     multiplying them was 90 % of a 12 MP photo's measurement (erf, exp and copies)."""
@@ -165,6 +176,10 @@ def _normal_kernel(t, y, wts, p, rows, fixed_s, side, cost, JTJ, JTr):  # pragma
         kk = 1.0 / (math.sqrt(2.0) * s)
         G = p[i, 6] if side != 0.0 else 0.0
         cg = c + side * (w / 2 - p[i, 7]) if side != 0.0 else 0.0
+        D = p[i, 8] if shade != 0.0 else 0.0
+        ea = c + shade * w / 2                   # the shadow from the edge, full out to L,
+        L = p[i, 9] if shade != 0.0 else 0.0
+        P = p[i, 10] if shade != 0.0 else 1.0    # then fading over the penumbra P
         col = np.empty(k)
         a_ = np.zeros((k, k))
         v = np.zeros(k)
@@ -202,11 +217,33 @@ def _normal_kernel(t, y, wts, p, rows, fixed_s, side, cost, JTJ, JTr):  # pragma
                     col[5] += dg * d / s
                 col[q] = g
                 col[q + 1] = -side * dg
+                q += 2
+            box = 0.0
+            if shade != 0.0:
+                # u outward from the edge; shape = Phi(u/s) - R(u - L), R the unit ramp over
+                # P blurred: (psi(x) - psi(x - P)) / P, psi(x) = x Phi(x/s) + s phi(x/s)
+                uu = shade * (tt - ea)
+                x0 = uu - L
+                x1 = x0 - P
+                pa, na_ = _norm_cdf_pdf(uu / s)
+                p0_, n0 = _norm_cdf_pdf(x0 / s)
+                p1, n1 = _norm_cdf_pdf(x1 / s)
+                ramp = (x0 * p0_ + s * n0 - x1 * p1 - s * n1) / P
+                box = pa - ramp                      # ~1 on the full shadow, 0 beyond it
+                f -= D * box
+                dsu = D * (na_ / s - (p0_ - p1) / P)   # d S / d u
+                col[3] += shade * dsu
+                col[4] += 0.5 * dsu
+                if not fixed_s:
+                    col[5] -= D * (-uu * na_ / (s * s) - (n0 - n1) / P)
+                col[q] = -box
+                col[q + 1] = -D * (p0_ - p1) / P
+                col[q + 2] = D * (p1 / P - ramp / P)
             r = (y[i, j] - f) * wt
             cst += r * r
             # far from both edges and the streak only b0, b1 and A act (the other columns
             # are exactly 0): 6 of the 28 sums of a streak fit
-            nz = k if (g1 != 0.0 or g2 != 0.0 or (side != 0.0 and g != 0.0)) else 3
+            nz = k if (g1 != 0.0 or g2 != 0.0 or (side != 0.0 and g != 0.0) or box != 0.0) else 3
             for u in range(nz):
                 cu = col[u] * wt
                 v[u] += cu * r
@@ -220,20 +257,21 @@ def _normal_kernel(t, y, wts, p, rows, fixed_s, side, cost, JTJ, JTr):  # pragma
         cost[ii] = cst
 
 
-def _normal_equations(t, y, wts, p, rows, fixed_s: bool, side: float):
+def _normal_equations(t, y, wts, p, rows, fixed_s: bool, side: float, shade: float = 0.0):
     """(cost (R,), J^T W J (R, k, k), J^T W r (R, k)) of profiles ``rows`` at parameters p:
     the free parameters are PARAMS (without s when fixed_s), then G, d when ``side`` is
-    -1 or +1 (the streak on the low-t or high-t edge)."""
-    k = len(_free_columns(fixed_s, side))
+    -1 or +1 (the streak on the low-t or high-t edge), then D, L when ``shade`` is -1 or +1
+    (the shadow's shelf outside the low-t or high-t edge)."""
+    k = len(_free_columns(fixed_s, side, shade))
     n = len(rows)
     cost, JTJ, JTr = np.empty(n), np.empty((n, k, k)), np.empty((n, k))
-    _normal_kernel(t, y, wts, p, rows, bool(fixed_s), float(side), cost, JTJ, JTr)
+    _normal_kernel(t, y, wts, p, rows, bool(fixed_s), float(side), float(shade), cost, JTJ, JTr)
     return cost, JTJ, JTr
 
 
-def _free_columns(fixed_s: bool, side: float) -> list[int]:
+def _free_columns(fixed_s: bool, side: float, shade: float = 0.0) -> list[int]:
     cols = [0, 1, 2, 3, 4] + ([] if fixed_s else [5])
-    return cols + ([6, 7] if side else [])
+    return cols + ([6, 7] if side else []) + ([8, 9, 10] if shade else [])
 
 
 def initial_guess(t, y, polarity: float, s0) -> np.ndarray:
@@ -274,33 +312,88 @@ def fit_profiles(t, y, p0, fixed_s: bool = False, weights=None, n_iter: int = 30
 
 
 def fit_streak(t, y, p_plain, side: float, height_mm, fixed_s: bool = True, weights=None,
-               n_iter: int = 30, chunk: int = 4000, flank: tuple[float, float] = STREAK_FLANK) -> ProfileFit:
+               n_iter: int = 30, chunk: int = 4000, flank: tuple[float, float] = STREAK_FLANK,
+               shade: float = 0.0, shelf=None) -> ProfileFit:
     """The edge pair plus a glare streak on one flank (module docstring), started from a
     plain fit ``p_plain`` (N, 6); the blur is held at its value unless ``fixed_s`` is False.
     ``side`` -1: the streak is on the low-t edge, +1 on the high-t edge. ``height_mm``
     (scalar or (N,)) the bead height, which bounds the streak's depth to the flank:
     ``flank`` (fractions of h/2; equal ends hold the depth there). Returns
     params (N, 8) in STREAK_PARAMS order. Compare its ``rms`` with the plain fit's to
-    decide whether a streak is there."""
-    p_plain = np.asarray(p_plain, float)
+    decide whether a streak is there. With ``shade`` -1 / +1 the lamp's shadow outside that
+    edge is in the model too (:func:`fit_shadow`), held at ``shelf`` (N, 3) = (D, L, P);
+    params are then (N, 11)."""
+    p_plain = np.asarray(p_plain, float)[:, :6]
     n = len(p_plain)
     r = 0.5 * np.broadcast_to(np.asarray(height_mm, float), (n,))
     lo, hi = flank[0] * r, flank[1] * r
     amp = np.abs(p_plain[:, 2:3])
     p0 = np.column_stack([p_plain, 0.05 * amp, 0.5 * (lo + hi)])
+    if not shade:
+        return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=float(side),
+                        depth_bounds=np.column_stack([lo, hi]))
+    shelf = np.asarray(shelf, float).reshape(n, 3)
+    p0 = np.column_stack([p0, shelf])
     return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=float(side),
-                    depth_bounds=np.column_stack([lo, hi]))
+                    depth_bounds=np.column_stack([lo, hi]), shade=float(shade),
+                    **{k: np.column_stack([shelf[:, j], shelf[:, j]])
+                       for j, k in enumerate(("dark_bounds", "reach_bounds", "fade_bounds"))})
 
 
-def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None):
+def fit_shadow(t, y, p_start, shade: float, reach_mm, fixed_s: bool = True, weights=None, n_iter: int = 30,
+               chunk: int = 4000, dark=None, reach_held=None, fade_held=None) -> ProfileFit:
+    """The edge pair plus the lamp's cast shadow outside one edge, started from a plain fit
+    ``p_start`` (N, 6). A bead lit from one side shades the plate beside its other edge,
+    darkening it by D (intensity, 0 <= D <= the plate's brightness there, whatever the
+    polarity) out to L, and a lamp of some size (a scanner's tube, a window) hides less and
+    less of itself further out: the shadow fades linearly over a penumbra P
+    (measure/phenomena.py cast_shadow). With u =
+    shade (t - e_a) the distance outward from the edge e_a = c + shade w/2, all blurred by s:
+
+        f_s(t) = f(t) - D [Phi(u/s) - (psi(u - L) - psi(u - L - P)) / P],
+        psi(x) = x Phi(x/s) + s phi(x/s)      (the blurred unit ramp's integral)
+
+    (P -> 0 is a box from the edge to L; a box with the penumbra's mean darkness read the
+    beads 7-10 um wide on a flatbed render with a 6 deg lamp: docs/MEASUREMENT.md "The
+    lamp's shadow"). ``shade`` -1: outside the low-t edge, +1 the high-t edge; ``reach_mm``
+    (scalar or (N,)) bounds L and P to [0, reach] (P >= 0.05 s); ``dark``, ``reach_held``,
+    ``fade_held`` (N,) hold D, L, P (one lamp leaves one share of the light in its shadows,
+    one elevation and one size: a shelf narrower than the blur tells only their product).
+    Returns params (N, 11): PARAMS, G, d (0: no streak), D, L, P."""
+    p_start = np.asarray(p_start, float)
+    n = len(p_start)
+    p0 = np.zeros((n, 11))
+    p0[:, :6] = p_start[:, :6]
+    reach = np.broadcast_to(np.asarray(reach_mm, float), (n,))
+    s_lo = 0.05 * p0[:, 5]
+    # a shadow takes at most all of the plate's light beside the edge
+    plate = np.abs(p0[:, 0] + p0[:, 1] * (p0[:, 3] + shade * p0[:, 4] / 2))
+    p0[:, 8] = np.minimum(0.1 * np.abs(p_start[:, 2]), 0.5 * plate) if dark is None else dark
+    p0[:, 9] = 0.2 * reach if reach_held is None else reach_held
+    p0[:, 10] = np.maximum(0.1 * reach, s_lo) if fade_held is None else fade_held
+
+    def held(v, free):
+        return free if v is None else np.column_stack([v, v]).astype(float)
+
+    return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=0.0, shade=float(shade),
+                    reach_bounds=held(reach_held, np.column_stack([np.zeros(n), reach])),
+                    dark_bounds=held(dark, np.column_stack([np.zeros(n), plate])),
+                    fade_bounds=held(fade_held, np.column_stack([s_lo, np.maximum(reach, s_lo)])))
+
+
+def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None, shade=0.0, reach_bounds=None,
+             dark_bounds=None, fade_bounds=None):
     # one compiled signature: C-contiguous float64 (a broadcast t would compile another)
     t = np.ascontiguousarray(t, dtype=float)
     y = np.ascontiguousarray(y, dtype=float)
     p0 = np.asarray(p0, float)
     wts = np.ones_like(y) if weights is None else np.ascontiguousarray(weights, dtype=float)
     db = np.zeros((len(t), 2)) if depth_bounds is None else depth_bounds
+    rb = np.zeros((len(t), 2)) if reach_bounds is None else reach_bounds
+    kb = np.column_stack([np.zeros(len(t)), np.full(len(t), np.inf)]) if dark_bounds is None else dark_bounds
+    fb = rb if fade_bounds is None else fade_bounds
     out = [_fit_chunk(t[i:i + chunk], y[i:i + chunk], p0[i:i + chunk], fixed_s, wts[i:i + chunk], n_iter, side,
-                      db[i:i + chunk])
+                      db[i:i + chunk], shade, rb[i:i + chunk], kb[i:i + chunk], fb[i:i + chunk])
            for i in range(0, len(t), chunk)]
     if not out:
         z = np.zeros((0, p0.shape[1] if p0.ndim == 2 else 6))
@@ -308,9 +401,10 @@ def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None)
     return ProfileFit(*(np.concatenate(parts) for parts in zip(*out)))
 
 
-def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
+def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None, shade=0.0, reach_bounds=None,
+               dark_bounds=None, fade_bounds=None):
     n = len(t)
-    free = _free_columns(fixed_s, side)
+    free = _free_columns(fixed_s, side, shade)
     npar = len(free)
     p = np.array(p, dtype=float, order="C")       # a copy: the caller keeps its start values
     span = t[:, -1] - t[:, 0]
@@ -319,7 +413,7 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
     act = np.arange(n)
     m_eff = wts.sum(axis=1)
     # the normal equations at the accepted point are all the iteration needs of the Jacobian
-    cost, JTJ, JTr = _normal_equations(t, y, wts, p, act, fixed_s, side)
+    cost, JTJ, JTr = _normal_equations(t, y, wts, p, act, fixed_s, side, shade)
     eye = np.eye(npar)
     trial_p = p.copy()
     # Keep the geometry physical: positive width and blur, centre inside the window, the
@@ -332,6 +426,10 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
     if side:
         lo[:, 6] = 0.0
         lo[:, 7], hi[:, 7] = depth_bounds[:, 0], depth_bounds[:, 1]
+    if shade:                                     # a shadow darkens, out to the lamp's reach
+        lo[:, 8], hi[:, 8] = dark_bounds[:, 0], dark_bounds[:, 1]
+        lo[:, 9], hi[:, 9] = reach_bounds[:, 0], reach_bounds[:, 1]
+        lo[:, 10], hi[:, 10] = fade_bounds[:, 0], fade_bounds[:, 1]
     lo, hi = lo[:, free], hi[:, free]
     # Profiles drop out of the iteration once converged: on a 12 MP photo the plain fits
     # take 7 steps on average, the streak fits 17.
@@ -359,7 +457,7 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None):
         trial = pa.copy()
         trial[:, free] = np.clip(pf + delta, lo[act], hi[act])
         trial_p[act] = trial
-        cost_t, JTJ_t, JTr_t = _normal_equations(t, y, wts, trial_p, act, fixed_s, side)
+        cost_t, JTJ_t, JTr_t = _normal_equations(t, y, wts, trial_p, act, fixed_s, side, shade)
         better = cost_t < cost[act]
         ib = act[better]
         step_f = trial[:, free] - pf

@@ -40,8 +40,10 @@ cameras do, so ``make bench`` can show one row per phenomenon and one with all o
   shadows      the lamp's cast shadows: a bead h tall, lit from elevation e, shades the
                plate beside it on the side away from the lamp out to h / tan(e) (flatbed:
                the scanner's lamp at 45 deg, 0.2-0.3 mm; phone: a lamp at 30-60 deg, up to
-               0.5 mm), the more the more the bead lies across the light. In shadow the
-               surface keeps only the room's diffuse light (1 - ``shadow_depth`` of its
+               0.5 mm), the more the more the bead lies across the light; a lamp of some
+               size (a scanner's tube 4-12 deg, a room lamp 1-8 deg across its radius)
+               leaves a penumbra that widens away from the bead. In shadow the surface
+               keeps only the room's diffuse light (1 - ``shadow_depth`` of its
                brightness) and the plate's specks go out. A height field ray-marched
                toward the lamp (:func:`cast_shadow`); the measurement's edge model has no
                term for it. Not in ``all`` (EXTRA_PHENOMENA): its own bench rows say what
@@ -88,6 +90,8 @@ class Realism:
     sparkle           brightest speck of ``sparkle``, a reflectance (0-1) added to the plate's
     shadow_depth      share of a surface's brightness a cast shadow takes (``shadows``);
                       None = seeded, 0.3-0.6 (a phone under a room lamp), 0.5 (a flatbed)
+    lamp_deg          the lamp's angular radius (deg) for ``shadows``; None = seeded,
+                      4-12 (a flatbed's tube), 1-8 (a phone's room lamp)
     jpeg_quality      quality used by ``jpeg``
     irregular_*       strengths of ``irregular`` (relative, mm) and their correlation lengths (mm)
     """
@@ -98,6 +102,7 @@ class Realism:
     glare_dn: float = 160.0
     sparkle: float = 0.3
     shadow_depth: float | None = None
+    lamp_deg: float | None = None
     jpeg_quality: int = 70
     irregular_rel: float = 0.012
     irregular_corr_mm: float = 20.0
@@ -367,18 +372,21 @@ def half_vector(light: np.ndarray) -> np.ndarray:
 
 
 def cast_shadow(height_mm: np.ndarray, step_px: np.ndarray, light: np.ndarray, *, step_mm: float,
-                soft_mm: float = 0.01) -> np.ndarray:
-    """Share of each pixel (0-1) in the shadow the height field casts under a distant lamp.
+                lamp_deg: float = 0.0) -> np.ndarray:
+    """Share of each pixel (0-1) in the shadow the height field casts under a lamp.
 
     height_mm   (H, W) plastic thickness above the plate (mm) at each pixel
     step_px     (H, W, 2) image offset (px) of one ``step_mm`` on the bed toward the lamp
                 at each pixel (the camera's Jacobian times the lamp's horizontal direction)
-    light       unit vector toward the lamp (bed frame, z up)
+    light       unit vector toward the lamp's centre (bed frame, z up)
+    lamp_deg    the lamp's angular radius as seen from the plate (deg): 0 a point
 
-    A point at height z is in shadow when the surface d mm toward the lamp stands higher
-    than z + d tan(e), e the lamp's elevation (ray marching over d = step_mm, 2 step_mm,
-    ... up to the tallest point's reach). The margin is turned into a share over
-    ``soft_mm`` of height: the lamp is not a point, and a pixel is not either.
+    The horizon toward the lamp: a point at height z sees the surface d mm toward the lamp
+    under the angle atan((z(d) - z) / d); the highest such angle over d = step_mm, 2 step_mm,
+    ... up to the tallest point's reach (ray marching) hides every part of the lamp below
+    it. A lamp seen as a band of elevations e +- lamp_deg (a scanner's tube, a window) is
+    hidden by the share clip((horizon - (e - lamp_deg)) / (2 lamp_deg), 0, 1): a penumbra
+    that widens with the distance from the bead, as real shadows do.
     """
     import cv2
 
@@ -387,15 +395,17 @@ def cast_shadow(height_mm: np.ndarray, step_px: np.ndarray, light: np.ndarray, *
     top = float(np.max(height_mm)) if height_mm.size else 0.0
     if horiz < 1e-6 or top <= 0.0:
         return np.zeros(height_mm.shape, np.float32)
-    tan_e = l[2] / horiz
-    n = int(np.ceil(top / tan_e / step_mm))
+    e = np.arctan2(l[2], horiz)
+    a = np.deg2rad(max(lamp_deg, 0.05))
+    low = max(e - a, np.deg2rad(2.0))
+    n = int(np.ceil(top / np.tan(low) / step_mm))
     H, W = height_mm.shape
     u = np.arange(W, dtype=np.float32)[None, :]
     v = np.arange(H, dtype=np.float32)[:, None]
     z = height_mm.astype(np.float32)
-    margin = np.full((H, W), -np.inf, np.float32)
+    tan_h = np.full((H, W), -np.inf, np.float32)
     for k in range(1, n + 1):
         ahead = cv2.remap(z, u + k * step_px[..., 0], v + k * step_px[..., 1], cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-        np.maximum(margin, ahead - z - np.float32(k * step_mm * tan_e), out=margin)
-    return np.clip(margin / np.float32(soft_mm), 0.0, 1.0)
+        np.maximum(tan_h, (ahead - z) / np.float32(k * step_mm), out=tan_h)
+    return np.clip((np.arctan(tan_h) - low) / np.float32(e + a - low), 0.0, 1.0)

@@ -795,11 +795,14 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
     sparkle = ph.pei_sparkle(Xc, Yc, seed=speck_seed) * np.float32(realism.sparkle) if "sparkle" in realism else None
     shadow = None
     if height_px is not None:
-        shadow = ph.cast_shadow(height_px, _toward_lamp_px(camera, Xc, Yc, light, shadow_step_mm), light,
-                                step_mm=shadow_step_mm)
         # its own stream: switching shadows on leaves every other draw as it was
         srng = np.random.default_rng([int(seed if light_seed is None else light_seed), 23])
-        shadow_depth = realism.shadow_depth or (0.5 if camera.kind == "flatbed" else float(srng.uniform(0.3, 0.6)))
+        flat = camera.kind == "flatbed"
+        shadow_depth = realism.shadow_depth or (0.5 if flat else float(srng.uniform(0.3, 0.6)))
+        lamp_deg = realism.lamp_deg if realism.lamp_deg is not None else float(srng.uniform(*((4, 12) if flat
+                                                                                             else (1, 8))))
+        shadow = ph.cast_shadow(height_px, _toward_lamp_px(camera, Xc, Yc, light, shadow_step_mm), light,
+                                step_mm=shadow_step_mm, lamp_deg=lamp_deg)
         del height_px
     del Xc, Yc
     bar.update()
@@ -847,6 +850,7 @@ def render(manifest: Manifest, widths: WidthTable | None, camera: Camera, *, pla
                 "edge_mm": edge_mm, "edge_softness_per_height": EDGE_SOFTNESS_PER_HEIGHT,
                 "realism": realism.label, "attenuation_mm": attenuation,
                 "shadow_depth": shadow_depth if shadow is not None else None,
+                "lamp_deg": lamp_deg if shadow is not None else None,
                 "lighting": {"exposure": lighting.exposure, "gradient": list(map(float, lighting.gradient)),
                              "vignetting": lighting.vignetting, "glare": lighting.glare},
                 "width_definition": ("footprint: the bead's widest point (physical cross-section)"

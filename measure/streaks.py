@@ -54,7 +54,29 @@ STREAK_SCREEN_CHANCE = 2.5
 STREAK_SURE_COHERENCE = 0.7
 
 
-def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True):
+def _streak_fits(t, y, params, rows, sides, height_mm, fixed_s, wts, shadows=None, flank=edges.STREAK_FLANK):
+    """Streak fits (len(rows), 8) of the stations ``rows``, each on its side (``sides``,
+    -1 / +1), from ``params``; where ``shadows`` (a :class:`measure.shadows.Shadows`) has a
+    shelf at a station it is fitted along (the lamp that lights one flank shades the
+    plate beside the other)."""
+    n = len(rows)
+    k = len(edges.STREAK_PARAMS)
+    out = edges.ProfileFit(np.full((n, k), np.nan), np.full((n, k), np.nan), np.full(n, np.nan), np.zeros(n, bool))
+    shade = np.zeros(n) if shadows is None else shadows.side[rows]
+    for side in (-1.0, 1.0):
+        for sh in (-1.0, 0.0, 1.0):
+            j = np.flatnonzero((sides == side) & (shade == sh))
+            if len(j) == 0:
+                continue
+            i = rows[j]
+            kw = {} if sh == 0.0 else dict(shade=sh, shelf=shadows.shelf[i])
+            f = edges.fit_streak(t[i], y[i], params[i], side, height_mm[i], fixed_s=fixed_s, weights=wts[i],
+                                 flank=flank, **kw)
+            out.params[j], out.sd[j], out.rms[j], out.ok[j] = f.params[:, :k], f.sd[:, :k], f.rms, f.ok
+    return out
+
+
+def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True, shadows=None):
     """The plain fit, with stations where a glare streak explains significantly more
     (F > STREAK_F, module docstring) on the side that faces the scan's light replaced by
     the streak fit; and which were. normals (N, 2): profile direction (bed frame).
@@ -67,7 +89,8 @@ def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True)
     side only where that one passes; in between, on both sides, since then the full test's
     coherence decides (a light plate with every phenomenon: 0.32 on the screen, 0.28 on
     all stations, no streaks; trying the facing side first made it 0.9 and the widths'
-    RMS 22 -> 40 um)."""
+    RMS 22 -> 40 um). ``shadows`` (measure/shadows.py): the lamp's shadow already found
+    at some stations, kept in their streak fits."""
     n = len(t)
     streak = np.zeros(n, bool)
     idx = np.flatnonzero(fit.ok & (fit.params[:, 4] >= STREAK_MIN_BLURS * fit.params[:, 5]))
@@ -77,14 +100,14 @@ def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True)
     light = None
     if len(idx) >= k * STREAK_MIN_STATIONS:
         sub = idx[::k]
-        use, _, toward = _streak_test(t, y, fit, wts, height_mm, normals, sub, fixed_s)
+        use, _, toward = _streak_test(t, y, fit, wts, height_mm, normals, sub, fixed_s, shadows=shadows)
         light = toward[use].mean(axis=0) if use.any() else np.zeros(2)
         if (use.sum() < 0.5 * STREAK_MIN_STATIONS / k
                 or np.hypot(*light) < max(0.5 * STREAK_COHERENCE, STREAK_SCREEN_CHANCE / np.sqrt(use.sum()))):
             return fit, streak
         if np.hypot(*light) < STREAK_SURE_COHERENCE:
             light = None
-    use, best, toward = _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light)
+    use, best, toward = _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light, shadows=shadows)
     # One light lights one flank: the streak's side, as a bed direction (side x normal),
     # points the same way at every station. Edge-model misfit that merely looks like a
     # streak (translucent edges: 6 % of stations passed the F test, 57 % of those then
@@ -96,7 +119,7 @@ def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True)
         use &= toward @ light > 0
     streak[idx[use]] = True
     side = np.sign(np.einsum("ij,ij->i", toward, normals[idx]))
-    best = _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s)
+    best = _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s, shadows)
     params, sd, rms = fit.params.copy(), fit.sd.copy(), fit.rms.copy()
     params[idx[use]] = best.params[use, :6]
     sd[idx[use]] = best.sd[use, :6]
@@ -104,7 +127,7 @@ def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True)
     return edges.ProfileFit(params, sd, rms, fit.ok), streak
 
 
-def _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s):
+def _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s, shadows=None):
     """The streak fits ``best`` of the stations ``idx[use]`` (streak on ``side``, -1 / +1)
     refitted with the streak's depth held at one value for the scan: one light over the
     scan puts the highlight where the flank's slope is half its zenith angle, at one depth
@@ -136,16 +159,7 @@ def _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s):
         return best
 
     def refit(o, d):
-        out = edges.ProfileFit(np.full((len(o), 8), np.nan), np.full((len(o), 8), np.nan), np.full(len(o), np.nan),
-                               np.zeros(len(o), bool))
-        for sd_ in (-1.0, 1.0):
-            j = np.flatnonzero(side[o] == sd_)
-            if len(j):
-                i = idx[o[j]]
-                f = edges.fit_streak(t[i], y[i], fit.params[i], sd_, h[i], fixed_s=fixed_s, weights=wts[i],
-                                     flank=(d, d))
-                out.params[j], out.sd[j], out.rms[j], out.ok[j] = f.params, f.sd, f.rms, f.ok
-        return out
+        return _streak_fits(t, y, fit.params, idx[o], side[o], h, fixed_s, wts, shadows, flank=(d, d))
 
     grid = np.arange(lo, hi + 1e-9, STREAK_DEPTH_STEP)
     sub = free[:: max(1, len(free) // STREAK_DEPTH_SAMPLE)]
@@ -166,13 +180,13 @@ def _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s):
     return out
 
 
-def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None):
+def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None, shadows=None):
     """For the stations ``idx``: whether a streak passes the F test, the better side's fit,
     and that side as a bed direction (side x normal). ``light`` (a bed direction): try the
     side that faces it, and the other only where that one passes; None: both everywhere."""
     n = len(idx)
     m_eff = wts[idx].sum(axis=1)
-    k0 = 5 if fixed_s else 6
+    k0 = np.full(n, 5 if fixed_s else 6) + (0 if shadows is None else 2 * (shadows.side[idx] != 0))
     rss0 = fit.rms[idx] ** 2 * np.maximum(m_eff - k0, 1)
     best_rss = np.full(n, np.inf)
     best_side = np.zeros(n)
@@ -184,9 +198,8 @@ def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None):
             o = on[sides == side]
             if len(o) == 0:
                 continue
-            i = idx[o]
-            f = edges.fit_streak(t[i], y[i], fit.params[i], side, height_mm[i], fixed_s=fixed_s, weights=wts[i])
-            rss = np.where(f.ok, f.rms ** 2 * np.maximum(m_eff[o] - k0 - 2, 1), np.inf)
+            f = _streak_fits(t, y, fit.params, idx[o], np.full(len(o), side), height_mm, fixed_s, wts, shadows)
+            rss = np.where(f.ok, f.rms ** 2 * np.maximum(m_eff[o] - k0[o] - 2, 1), np.inf)
             better = rss < best_rss[o]
             j = o[better]
             best_rss[j], best_side[j] = rss[better], side

@@ -52,6 +52,7 @@ from measure import edges
 from measure.station_rules import (beside_absence, dropouts, enclosed, isolated, oblique, steep,
                                    unfit)
 from measure.station_sd import calibrated_sd, registration_place_sd, scatter_factor, slope_sd
+from measure.shadows import SHADOW_DOUBT_MM, Shadows, with_shadows
 from measure.streaks import with_glare_streaks
 from measure.table import WidthTable
 from patterns.manifest import Manifest, Samples, sample_points
@@ -191,6 +192,10 @@ class WidthMeasurement:
                     (:func:`_relative_spread`; NaN where the blur was fitted free)
     width_per_rel_blur_mm  how far each width moves per unit relative error of that blur
                     (mm; measure/edges.py width_per_blur x the blur; None if fitted free)
+    shadows         measure.shadows.Shadows: where the lamp's shadow was fitted beside the
+                    bead, and the scan's ShadowModel (``shadows.model``; None: none seen)
+    lamp_sd_mm      the part of ``width_sd_mm`` for the lamp's shading of beads across it
+                    (mm; None without shadows)
     """
 
     table: WidthTable
@@ -208,6 +213,8 @@ class WidthMeasurement:
     place_sd_mm: np.ndarray | None = None
     blur_rel_sd: float = float("nan")
     width_per_rel_blur_mm: np.ndarray | None = None
+    shadows: Shadows | None = None
+    lamp_sd_mm: np.ndarray | None = None
 
 
 def widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
@@ -218,7 +225,7 @@ def widths(image, manifest_or_samples, registration, *, manifest: Manifest | Non
 
 def measure_widths(image, manifest_or_samples, registration, *, manifest: Manifest | None = None,
                    color=None, ds_mm: float = 0.25, fix_blur: bool = True,
-                   blur_prior_px=None, colour_axis=None) -> WidthMeasurement:
+                   blur_prior_px=None, colour_axis=None, shadows=None) -> WidthMeasurement:
     """Measure the bead width at every station.
 
     image                gray float (H, W), 0..1
@@ -230,6 +237,8 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                          the stations lie on one line (the width reference: _blur_plane)
     colour_axis          measure.contrast.Channel: where its colour axis tells bead from
                          plate, a station whose centre has the plate's colour is missing
+    shadows              the scan's measure.shadows.ShadowModel from its test tracks (False:
+                         they showed none); None: these stations decide (measure/shadows.py)
     """
     if isinstance(manifest_or_samples, Manifest):
         manifest = manifest_or_samples
@@ -287,7 +296,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
         steady &= ~_near_bead_ends(manifest, smp, BLUR_END_CLEAR_MM)
     plane, track_blur, blur_rel_sd = _learn_blur_plane(t, y, p0, inside, steady, uv_c, ppm_n, height, nrm,
                                                        prior=blur_prior_px, w_ref=w_ref, gap=gap,
-                                                       track=smp.track) if fix_blur else (None, None, np.nan)
+                                                       track=smp.track, shadows=shadows) if fix_blur else (None, None, np.nan)
     if plane is not None:
         p1 = p0.copy()
         p1[:, 5] = np.clip(plane[0] + plane[1] * uv_c[:, 0] + plane[2] * uv_c[:, 1] + track_blur, 0.3,
@@ -298,7 +307,8 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
         wts = inside.astype(float)
         fit = edges.fit_profiles(t, y, p0, weights=wts)
     plain_w = fit.width.copy()
-    fit, streak = with_glare_streaks(t, y, fit, wts, height, nrm)
+    fit, shade = with_shadows(t, y, fit, wts, height, nrm, model=shadows)
+    fit, streak = with_glare_streaks(t, y, fit, wts, height, nrm, shadows=shade)
 
     w = fit.width.copy()
     c = fit.centre.copy()
@@ -446,6 +456,14 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     if per_rel_blur is not None and np.isfinite(blur_rel_sd):
         by_blur = np.abs(np.nan_to_num(per_rel_blur)) * blur_rel_sd
         sd, sd_own = np.hypot(sd, by_blur), np.hypot(sd_own, by_blur)
+    by_lamp = None
+    if shade is not None and shade.model is not None:
+        # the lamp that casts the shadows shades the beads across it too (the flank away from
+        # it in its own shadow): what the shelf leaves is shared along a track, so it is in
+        # the whole sd, not the own (measure/shadows.py SHADOW_DOUBT_MM), until the heading
+        # levels take it out (measure/pipeline.py)
+        by_lamp = np.where(w > 0, SHADOW_DOUBT_MM * np.abs(nrm @ shade.model.away), 0.0)
+        sd = np.hypot(sd, by_lamp)
     sd_own = np.where(np.isfinite(sd_own), sd_own, np.nan)
     w = np.where(np.isfinite(w), w, np.nan)
     sd = np.where(np.isfinite(sd), sd, np.nan)
@@ -457,7 +475,8 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                             blur_plane_px=tuple(plane) if plane is not None else (), glare_streak=streak,
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w),
                             sd_scale=sd_scale, sd_floor_mm=sd_floor, place_sd_mm=place_sd,
-                            blur_rel_sd=float(blur_rel_sd), width_per_rel_blur_mm=per_rel_blur)
+                            blur_rel_sd=float(blur_rel_sd), width_per_rel_blur_mm=per_rel_blur, shadows=shade,
+                            lamp_sd_mm=by_lamp)
 
 
 def background_shift(x_mm, y_mm, plate_ends, amp, ok) -> np.ndarray:
@@ -645,7 +664,7 @@ def _clear_of_neighbour(t, w_ref, gap, blur_mm):
 
 
 def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals, prior=None, w_ref=None,
-                      gap=None, track=None):
+                      gap=None, track=None, shadows=None):
     """The blur plane s_px(u, v) from a blur-free pass over (up to 3000 of) the stations
     (``prior``: a plane from elsewhere in the image, see :func:`_blur_plane`); with the
     beads' widths ``w_ref`` and clearances ``gap`` (mm), a second pass keeps the profiles
@@ -661,8 +680,11 @@ def _learn_blur_plane(t, y, p0, inside, usable, uv_c, ppm_n, height_mm, normals,
                                   weights=wts.astype(float))
     # A glare streak makes its edge look sharp (the prime line, in glare all along on a
     # flatbed, read s 20 % small and the bead 10 um wide): the blur is read with it modelled.
+    # So does the lamp's shadow beside the other edge make it look soft.
+    fit1, sh1 = with_shadows(t[sub], y[sub], fit1, wts.astype(float), height_mm[sub], normals[sub], fixed_s=False,
+                             model=shadows)
     fit1, _ = with_glare_streaks(t[sub], y[sub], fit1, wts.astype(float), height_mm[sub], normals[sub],
-                                  fixed_s=False)
+                                  fixed_s=False, shadows=sh1)
     blur_px = fit1.params[:, 5] * ppm_n[sub]
     ok1 = fit1.ok & usable[sub] & (fit1.width > 4 * fit1.params[:, 5])
     plane = _blur_plane(uv_c[sub], blur_px, fit1, ok=ok1, prior=prior)

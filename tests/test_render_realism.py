@@ -508,6 +508,16 @@ def test_a_wall_casts_a_shadow_h_over_tan_elevation_long_away_from_the_lamp(elev
     assert np.all(s[plate & (x < reach - 0.02)] > 0.99)
     assert np.all(s[plate & (x > reach + 0.02)] == 0.0)
     assert np.all(s[~plate] == 0.0)               # the wall's own top is lit
+    # a lamp of angular radius a: full shadow out to h / tan(e + a), none beyond h / tan(e - a),
+    # the share falling with the lamp's hidden part between
+    a = 8.0
+    s = cast_shadow(height, toward, _light(elevation_deg, 180.0), step_mm=step_mm, lamp_deg=a)[2]
+    near, far = (h / np.tan(np.deg2rad(elevation_deg + k * a)) for k in (1, -1))
+    assert np.all(s[plate & (x < near - 0.02)] > 0.99) and np.all(s[plate & (x > far + 0.02)] == 0.0)
+    mid = plate & (x > near + 0.02) & (x < far - 0.02)
+    # (the wall's top corner is the last pixel's centre, one pixel before x = 0)
+    expect = (np.arctan(h / (x[mid] + px_mm)) - np.deg2rad(elevation_deg - a)) / np.deg2rad(2 * a)
+    np.testing.assert_allclose(s[mid], expect, atol=0.05)
     along = np.zeros_like(toward)
     along[..., 1] = toward[..., 0]                # the lamp's direction along the wall: image rows
     assert not cast_shadow(height, along, _light(elevation_deg, 90.0), step_mm=step_mm).any()

@@ -1,0 +1,144 @@
+"""The lamp's cast shadow beside a bead (measure/shadows.py, measure/edges.py fit_shadow).
+
+The profiles here are drawn on a fine grid from a rounded bead's height field, shaded by
+measure/phenomena.py's ray-marched shadow and blurred numerically: not from the fitted
+model's erf formula."""
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter1d
+
+from measure import edges
+from measure.phenomena import cast_shadow
+from measure.shadows import with_shadows
+
+DX_MM = 0.002          # the fine grid the profiles are drawn on
+STEP_MM = 0.0085       # the profiles' sampling (600 dpi flatbed, 5 samples a pixel)
+BLUR_MM = 0.035
+
+
+def _profile(w, *, across=1.0, lamp_side=-1.0, h=0.2, elevation_deg=45.0, lamp_deg=6.0, depth=0.5,
+             bead=0.08, plate=0.70, c=0.0, noise=0.0, rng=None, half_mm=0.5):
+    """(t, y): a rounded bead (the slicer's flank, lateral radius h/2) of width w centred at
+    c, its profile's normal ``across`` (cos of the angle to the lamp's horizontal direction),
+    the lamp on the ``lamp_side`` of t, its shadow cast on plate and bead alike."""
+    x = np.arange(-1.0, 1.0, DX_MM)
+    d = np.abs(x - c)
+    r = min(h / 2, w / 2)
+    u = np.clip((d - (w / 2 - r)) / r, 0, 1)
+    z = np.where(d <= w / 2, h * np.sqrt(np.clip(1 - u ** 2, 0, 1)), 0.0)
+    hf = np.tile(z, (3, 1))
+    toward = np.zeros(hf.shape + (2,), np.float32)
+    toward[..., 0] = lamp_side * 0.5               # half a grid step toward the lamp per step
+    e = np.deg2rad(elevation_deg)
+    # in the profile's plane the lamp stands higher the more the bead lies along it: its
+    # horizontal part there is cos(e) x across
+    light = np.array([lamp_side * np.cos(e) * across, 0.0, np.sin(e)])
+    s = cast_shadow(hf, toward, light / np.linalg.norm(light), step_mm=0.5 * DX_MM, lamp_deg=lamp_deg)[1]
+    img = gaussian_filter1d(np.where(d <= w / 2, bead, plate) * (1 - depth * s), BLUR_MM / DX_MM)
+    t = np.arange(-half_mm, half_mm, STEP_MM)
+    y = np.interp(t, x, img)
+    if noise:
+        y = y + noise * rng.standard_normal(len(t))
+    return t, y
+
+
+@pytest.mark.parametrize("lamp_deg", [0.5, 8.0])
+def test_a_shadow_beside_a_bead_is_fitted_and_its_width_kept(lamp_deg):
+    """The plain edge pair puts the shadow's side halfway across the shadow (+40-75 um on a
+    0.2 mm bead lit at 45 deg); the shelf with its penumbra keeps the width within 10 um
+    (the bead's own far flank in its shadow, which no term models, is most of that)."""
+    for lamp_side in (-1.0, 1.0):
+        t, y = _profile(0.48, lamp_side=lamp_side, lamp_deg=lamp_deg)
+        p0 = edges.initial_guess(t[None], y[None], -1.0, BLUR_MM)
+        plain = edges.fit_profiles(t[None], y[None], p0)
+        sh = edges.fit_shadow(t[None], y[None], plain.params, -lamp_side, 0.4, fixed_s=False)
+        assert plain.width[0] - 0.48 > 0.04
+        assert sh.ok[0] and abs(sh.width[0] - 0.48) < 0.010
+        assert 0.3 < sh.params[0, 8] / 0.70 < 0.55               # D: the shadow takes half the light
+        wrong = edges.fit_shadow(t[None], y[None], plain.params, lamp_side, 0.4, fixed_s=False)
+        assert wrong.rms[0] > 3 * sh.rms[0]                        # the lamp's side has none
+
+
+def _stations(n, rng, *, shadow=True, lamp_side_along_y=-1.0, misfit=0.0):
+    """n stations of widths 0.3-1.2 mm whose normals turn through the half circle; their
+    profiles lit from -y (bed frame) at 45 deg, or not lit at all; ``misfit`` adds a
+    one-sided bump outside the +t edge (a misfit that is no shadow)."""
+    ang = rng.uniform(0, np.pi, n)
+    normals = np.column_stack([np.cos(ang), np.sin(ang)])
+    widths = rng.choice([0.3, 0.6, 1.2], n)
+    ts, ys = [], []
+    for k in range(n):
+        across = normals[k] @ np.array([0.0, lamp_side_along_y])    # + : the normal points at the lamp
+        side = 1.0 if across > 0 else -1.0
+        t, y = _profile(widths[k], across=abs(across), lamp_side=side, depth=0.5 if shadow else 0.0,
+                        noise=0.004, rng=rng, half_mm=0.9)
+        if misfit:
+            y = y - misfit * np.exp(-0.5 * ((t - widths[k] / 2 - 0.05) / 0.03) ** 2)
+        ts.append(t)
+        ys.append(y)
+    t, y = np.array(ts), np.array(ys)
+    p0 = edges.initial_guess(t, y, -1.0, BLUR_MM)
+    p0[:, 5] = BLUR_MM
+    fit = edges.fit_profiles(t, y, p0, fixed_s=True)
+    return t, y, fit, normals, widths
+
+
+def test_one_lamps_shadows_are_found_and_taken_out_and_none_are_invented():
+    rng = np.random.default_rng(3)
+    t, y, fit, normals, widths = _stations(240, rng)
+    wts = np.ones_like(y)
+    out, sh = with_shadows(t, y, fit, wts, 0.2, normals)
+    assert sh.away is not None and sh.away @ np.array([0.0, 1.0]) > 0.98      # away from the lamp at -y
+    across = np.abs(normals @ sh.away) >= 0.7
+    assert np.mean(sh.side[across] != 0) > 0.95
+    err_plain, err = fit.width - widths, out.width - widths
+    assert np.mean(err_plain[across]) > 0.03                         # the shadow read as bead
+    assert np.abs(np.median(err[across])) < 0.010 and np.abs(np.median(err[~across])) < 0.010
+    # shadow-free stations, and a one-sided misfit on every station that is no shadow
+    for kw in ({"shadow": False}, {"shadow": False, "misfit": 0.05}):
+        t, y, fit, normals, widths = _stations(240, np.random.default_rng(4), **kw)
+        out, sh = with_shadows(t, y, fit, np.ones_like(y), 0.2, normals)
+        assert not sh.any and sh.away is None
+        np.testing.assert_array_equal(out.params, fit.params)
+
+
+def test_a_flatbeds_lamp_shadows_are_measured_out_of_a_scan(tmp_path):
+    """A 600 dpi flatbed scan of dark beads on a light plate, the scanner's lamp at 45 deg
+    (measure/phenomena.py shadows): without the shelf the beads across the lamp read up to
+    +70 um; `calib measure`'s pipeline finds the lamp (its side), fits the shelves, applies
+    the width reference and takes each station's heading level off: the widths within a
+    few um, and the summary says where the shadows fell."""
+    import cv2
+
+    import measure.widths as mw
+    from calib.commands.simulate import simulate_scan
+    from fit.truth import load_truth
+    from measure.pipeline import measure_scan
+    from patterns import spiral_step
+    from patterns.profile import data_dir
+
+    _, man = spiral_step.generate("direct_drive", widths_mm=(0.5, 1.0), speeds_mm_s=(20.0,), n_steps=4)[:2]
+    spec, values, _ = load_truth(data_dir() / "truths" / "direct_drive.toml", man.printer)
+    r, _ = simulate_scan(man, spec, values, "flatbed", profile=man.printer, dpi=600.0, seed=3, plate="light",
+                         realism="shadows", clutter=False)
+    path = tmp_path / "scan.png"
+    cv2.imwrite(str(path), r.image)
+    res = measure_scan(path, man)
+    tb, tr = res.table, r.table
+    ok = tb.valid & (tr.width_mm > 0)
+    err = tb.width_mm[ok] - tr.width_mm[ok]
+    sh = res.summary["shadows"]
+    assert sh["stations"] > 0.3 * ok.sum() and not sh["unresolved"] and 0.35 < sh["depth"] < 0.6
+    away = np.deg2rad(sh["away_deg"])                  # the renderer's flatbed lamp is at +-y
+    assert abs(np.sin(away)) > 0.99
+    assert res.summary["apparent_width"]["applied"]
+    assert abs(np.mean(err)) < 0.004 and np.sqrt(np.mean(err ** 2)) < 0.006
+    # the same scan with the shelf switched off: the widths across the lamp read wide
+    orig = mw.with_shadows
+    try:
+        mw.with_shadows = lambda t, y, fit, wts, h, nrm, fixed_s=True, model=None: (fit, None)
+        plain = measure_scan(path, man).table
+    finally:
+        mw.with_shadows = orig
+    ok2 = plain.valid & (tr.width_mm > 0)
+    assert np.sqrt(np.mean((plain.width_mm[ok2] - tr.width_mm[ok2]) ** 2)) > 0.02
