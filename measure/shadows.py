@@ -45,6 +45,10 @@ SHADOW_SHARE = 0.8
 #: A shadow takes at least this share of the plate's light (the room's diffuse light fills
 #: it in; below this it does not move an edge by a micron).
 SHADOW_MIN_DEPTH = 0.05
+#: ... and at most this share: a shelf taking all of it is the fit leaning on its bound (a
+#: light bead's glare on the dark plate fitted shelves at 4-12x the plate's light before D
+#: was bounded by it, 0.99 after; a real shadow keeps the room's diffuse light).
+SHADOW_MAX_DEPTH = 0.95
 SHADOW_DEPTH_SPREAD = 0.5
 #: What the shelf leaves of the lamp's shading, per unit of |n . away| (mm), added to the
 #: stations' sd on a scan with shadows: on 600 dpi flatbed renders the beads across the lamp
@@ -162,8 +166,9 @@ def with_shadows(t, y, fit, wts, height_mm, normals, fixed_s: bool = True, model
         # another, no longer stands for the test tracks. Said where the headings span
         # enough to tell it from a one-sided misfit of parallel tracks.
         na = np.abs(normals[idx[use]] @ (away / np.hypot(*away)))
-        if use.sum() >= SHADOW_MIN_STATIONS and np.ptp(na) >= REACH_LAW_SPAN and _shadow_depth(
-                best, use, np.where(normals[idx] @ away >= 0, 1.0, -1.0)) is not None:
+        share = _darkening(best, use, normals[idx], away)
+        if (use.sum() >= SHADOW_MIN_STATIONS and np.ptp(na) >= REACH_LAW_SPAN and len(share)
+                and SHADOW_MIN_DEPTH <= np.median(share) <= SHADOW_MAX_DEPTH):
             out.unresolved = away / np.hypot(*away)
         return fit, out
     # One lamp, one share of its light gone in every shadow: D is that share of the plate's
@@ -226,18 +231,23 @@ def _one_lamp(best, use, normals, away, h) -> bool:
     across = np.abs(normals @ a) >= 0.7
     if not across.any() or use[across].mean() < SHADOW_SHARE:
         return False
-    P = best.params[use]
-    side = np.where(normals[use] @ a >= 0, 1.0, -1.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = P[:, 8] / np.abs(_background(P, side))
-    frac = frac[np.isfinite(frac)]
+    frac = _darkening(best, use, normals, away)
     if len(frac) < SHADOW_MIN_STATIONS:
         return False
     q1, med, q3 = np.percentile(frac, [25, 50, 75])
-    if not (med > 0 and (q3 - q1) <= SHADOW_DEPTH_SPREAD * med):
+    if not (SHADOW_MIN_DEPTH <= med <= SHADOW_MAX_DEPTH and (q3 - q1) <= SHADOW_DEPTH_SPREAD * med):
         return False
     law = _reach_law(best, use, normals, away, h)
     return law is None or law[1] >= 0.5
+
+
+def _darkening(best, use, normals, away) -> np.ndarray:
+    """The share of the plate's light each passing shelf takes (finite values only)."""
+    P = best.params[use]
+    side = np.where(normals[use] @ away >= 0, 1.0, -1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = P[:, 8] / np.abs(_background(P, side))
+    return frac[np.isfinite(frac)]
 
 
 def _background(p, side):
@@ -260,10 +270,7 @@ def _shadow_depth(best, use, sides) -> float | None:
     if len(pick) == 0:
         return None
     depth = float(np.median(pick))
-    # a shadow darker than 95 % of the plate's light is the fit leaning on its bound: a light
-    # bead's glare on a dark plate, no shadow (a flatbed render: 4-12x the plate's light
-    # before D was bounded by it)
-    return depth if SHADOW_MIN_DEPTH <= depth <= 0.95 else None
+    return depth if SHADOW_MIN_DEPTH <= depth <= SHADOW_MAX_DEPTH else None
 
 
 #: The reach law is read only from at least this many resolved shelves spanning this range
