@@ -5,14 +5,15 @@ lies in the bead's shadow out to ~h / tan(e) (a flatbed's lamp at 45 deg: up to 
 beyond a rounded 0.3 mm bead's footprint, measure/phenomena.py ``shadows``). The shadow is
 a third level between plate and bead, and the plain edge pair puts that edge halfway
 across it: on a 600 dpi flatbed render of dark beads on a light plate the widths read up
-to +91 um wide where the beads lie across the lamp, +3 um along it (docs/MEASUREMENT.md,
-"The lamp's shadow"). Where it pays, measure/widths.py refits the station's edge pair with
-the shadow's shelf outside the edge facing away from the lamp (measure/edges.py
-:func:`~measure.edges.fit_shadow`), and keeps it where it explains significantly more,
-F = [(RSS_plain - RSS_shelf) / 2] / [RSS_shelf / (M - k - 2)] > ``SHADOW_F``, and the
-shelves' sides agree with one lamp over the scan (``SHADOW_COHERENCE``). One lamp casts
-every shadow the same way: the shelf's side as a bed direction (side x normal) points
-away from it at every station. Widths in mm.
+to +72 um wide where the beads lie across the lamp (a lamp 6 deg across; +91 um under a
+point lamp), +3 um along it (docs/MEASUREMENT.md, "The lamp's shadow"). Where it pays,
+measure/widths.py refits the station's edge pair with the shadow's shelf outside the edge
+facing away from the lamp (measure/edges.py :func:`~measure.edges.fit_shadow`), and keeps
+it where it explains significantly more, F = [(RSS_plain - RSS_shelf) / q] /
+[RSS_shelf / (M - k - q)] > ``SHADOW_F`` (q the shelf's free parameters), and the shelves
+look like one lamp's over the scan (:func:`_one_lamp`). One lamp casts every shadow the
+same way: the shelf's side as a bed direction (side x normal) points away from it at
+every station. Widths in mm.
 """
 from __future__ import annotations
 
@@ -91,6 +92,9 @@ class Shadows:
     reach_mm   (N,) the bound of L at each station (SHADOW_REACH_PER_HEIGHT x h)
     away       unit bed direction away from the lamp (the shadows' side), or None
     model      the scan's :class:`ShadowModel`, or None (no shadows found)
+    unresolved the bed direction away from a lamp whose shadow the beads show but no shelf
+               could model (blurred over: measure/pipeline.py then leaves the width
+               reference unapplied), or None
     """
 
     side: np.ndarray
@@ -325,11 +329,11 @@ def _shelf_test(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away=None, dept
     """For the stations ``idx``: whether a shelf passes the F test, the better side's fit
     (N, 10), and that side as a bed direction (side x normal). ``away`` (a bed direction):
     only the side that faces it; None: both, the better kept. ``depth``: D held at that
-    share of the plate's brightness beside the edge (one parameter added, not two)."""
+    share of the plate's brightness beside the edge (two parameters added, not three)."""
     n = len(idx)
     m_eff = wts[idx].sum(axis=1)
     k0 = 5 if fixed_s else 6
-    extra = 2 if depth is None else 1
+    extra = 3 if depth is None else 2            # D, L, P free; L, P with D held
     rss0 = fit.rms[idx] ** 2 * np.maximum(m_eff - k0, 1)
     best_rss = np.full(n, np.inf)
     best_side = np.zeros(n)
