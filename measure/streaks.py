@@ -186,6 +186,8 @@ def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None, s
     side that faces it, and the other only where that one passes; None: both everywhere."""
     n = len(idx)
     m_eff = wts[idx].sum(axis=1)
+    # a station with a shadow's shelf: its fit had the shelf's reach and penumbra free (the
+    # depth held), which its streak fits hold
     k0 = np.full(n, 5 if fixed_s else 6) + (0 if shadows is None else 2 * (shadows.side[idx] != 0))
     rss0 = fit.rms[idx] ** 2 * np.maximum(m_eff - k0, 1)
     best_rss = np.full(n, np.inf)
