@@ -341,7 +341,7 @@ def fit_streak(t, y, p_plain, side: float, height_mm, fixed_s: bool = True, weig
 
 
 def fit_shadow(t, y, p_start, shade: float, reach_mm, fixed_s: bool = True, weights=None, n_iter: int = 30,
-               chunk: int = 4000, dark=None, reach_held=None, fade_held=None) -> ProfileFit:
+               chunk: int = 4000, dark=None, reach_held=None, fade_held=None, glare_height_mm=None) -> ProfileFit:
     """The edge pair plus the lamp's cast shadow outside one edge, started from a plain fit
     ``p_start`` (N, 6). A bead lit from one side shades the plate beside its other edge,
     darkening it by D (intensity, 0 <= D <= the plate's brightness there, whatever the
@@ -359,7 +359,11 @@ def fit_shadow(t, y, p_start, shade: float, reach_mm, fixed_s: bool = True, weig
     (scalar or (N,)) bounds L and P to [0, reach] (P >= 0.05 s); ``dark``, ``reach_held``,
     ``fade_held`` (N,) hold D, L, P (one lamp leaves one share of the light in its shadows,
     one elevation and one size: a shelf narrower than the blur tells only their product).
-    Returns params (N, 11): PARAMS, G, d (0: no streak), D, L, P."""
+    ``glare_height_mm`` (scalar or (N,), the bead height): the lamp's glare streak on the
+    flank facing it (the other edge) is fitted too, as in :func:`fit_streak` (the lamp that
+    casts the shadow lights that flank: fitted without it, its streak pulled the edge in and
+    the shelf took 0.11 of the plate's light for 0.5). Returns params (N, 11): PARAMS, G, d
+    (0: no streak), D, L, P."""
     p_start = np.asarray(p_start, float)
     n = len(p_start)
     p0 = np.zeros((n, 11))
@@ -372,10 +376,16 @@ def fit_shadow(t, y, p_start, shade: float, reach_mm, fixed_s: bool = True, weig
     p0[:, 9] = 0.2 * reach if reach_held is None else reach_held
     p0[:, 10] = np.maximum(0.1 * reach, s_lo) if fade_held is None else fade_held
 
+    side, depth = 0.0, None
+    if glare_height_mm is not None:
+        r = 0.5 * np.broadcast_to(np.asarray(glare_height_mm, float), (n,))
+        side, depth = -float(shade), np.column_stack([STREAK_FLANK[0] * r, STREAK_FLANK[1] * r])
+        p0[:, 6], p0[:, 7] = 0.05 * np.abs(p_start[:, 2]), depth.mean(axis=1)
+
     def held(v, free):
         return free if v is None else np.column_stack([v, v]).astype(float)
 
-    return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=0.0, shade=float(shade),
+    return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=side, depth_bounds=depth, shade=float(shade),
                     reach_bounds=held(reach_held, np.column_stack([np.zeros(n), reach])),
                     dark_bounds=held(dark, np.column_stack([np.zeros(n), plate])),
                     fade_bounds=held(fade_held, np.column_stack([s_lo, np.maximum(reach, s_lo)])))

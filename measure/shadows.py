@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from measure import edges
+from measure.streaks import STREAK_F
 
 #: F statistic above which the shadow's shelf replaces the plain edge pair (the glare
 #: streak's bar, measure/streaks.py STREAK_F; shadow-free renders: docs/MEASUREMENT.md).
@@ -148,7 +149,7 @@ def with_shadows(t, y, fit, wts, height_mm, normals, fixed_s: bool = True, model
     if len(idx) < SHADOW_MIN_STATIONS:
         return fit, out
     sub = idx[::SHADOW_SCREEN_EVERY] if len(idx) >= SHADOW_SCREEN_EVERY * SHADOW_MIN_STATIONS else idx
-    use, _, away_i = _shelf_test(t, y, fit, wts, normals, out.reach_mm, sub, fixed_s, None)
+    use, _, away_i, _ = _shelf_test(t, y, fit, wts, normals, out.reach_mm, sub, fixed_s, None)
     away = away_i[use].mean(axis=0) if use.any() else np.zeros(2)
     if (use.sum() < 0.5 * SHADOW_MIN_STATIONS * len(sub) / len(idx)
             or np.hypot(*away) < max(SHADOW_COHERENCE, SHADOW_SCREEN_CHANCE / np.sqrt(max(use.sum(), 1)))):
@@ -156,7 +157,7 @@ def with_shadows(t, y, fit, wts, height_mm, normals, fixed_s: bool = True, model
     # a bead that lies along the lamp has no shadow beside it: a shelf there is misfit
     # (11 % of such stations took one on the flatbed render, reading 10 um narrow)
     idx = idx[np.abs(normals[idx] @ (away / np.hypot(*away))) >= SHADOW_MIN_ACROSS]
-    use, best, away_i = _shelf_test(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, away)
+    use, best, away_i, _ = _shelf_test(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, away)
     away = away_i[use].mean(axis=0) if use.sum() >= SHADOW_MIN_STATIONS else np.zeros(2)
     if np.hypot(*away) < SHADOW_COHERENCE:
         return fit, out
@@ -182,7 +183,7 @@ def with_shadows(t, y, fit, wts, height_mm, normals, fixed_s: bool = True, model
     depth = _shadow_depth(best, use, np.where(normals[idx] @ away >= 0, 1.0, -1.0))
     law = None
     if depth is not None:
-        use, best, away_i = _shelf_test(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, away, depth)
+        use, best, away_i, base = _shelf_test(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, away, depth)
         use &= away_i @ away > 0
         # ... and one lamp's elevation: the reach falls as the bead turns toward the lamp,
         # L = k h |n . away|^p, read on the shelves wider than 1.5 blurs (k and p free: a
@@ -191,7 +192,7 @@ def with_shadows(t, y, fit, wts, height_mm, normals, fixed_s: bool = True, model
         # (600 dpi flatbed render, dark beads on a light plate, normals 30-50 deg off the lamp).
         law = _reach_law(best, use, normals[idx], away, h_idx)
         if law is not None:
-            _held_reach(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, away, depth, law, use, best, h_all)
+            _held_reach(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, away, depth, law, use, best, base, h_all)
     out.model = ShadowModel(away / np.hypot(*away), depth, law)
     return _with_shelves(fit, out, idx[use], best.params[use], best.sd[use], best.rms[use], normals)
 
@@ -215,10 +216,11 @@ def _apply_model(t, y, fit, wts, normals, idx, fixed_s, model, out, h):
     idx = idx[np.abs(normals[idx] @ model.away) >= SHADOW_MIN_ACROSS]
     if len(idx) == 0:
         return _with_shelves(fit, out, idx, np.zeros((0, 11)), np.zeros((0, 11)), np.zeros(0), normals)
-    use, best, _ = _shelf_test(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, model.away, model.depth)
+    use, best, _, base = _shelf_test(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, model.away,
+                                     model.depth)
     if model.depth is not None and model.law is not None:
         _held_reach(t, y, fit, wts, normals, out.reach_mm, idx, fixed_s, model.away, model.depth, model.law, use,
-                    best, h)
+                    best, base, h)
     return _with_shelves(fit, out, idx[use], best.params[use], best.sd[use], best.rms[use], normals)
 
 
@@ -280,17 +282,28 @@ def _shadow_depth(best, use, sides) -> float | None:
 #: The reach law is read only from at least this many resolved shelves spanning this range
 #: of |n . away| (a scan whose beads all lie one way across the lamp cannot tell p).
 REACH_LAW_SPAN = 0.3
+#: ... read on the beads of the heading bins (this wide in |n . away|) whose median shelf
+#: reaches past 1.5 blurs.
+REACH_LAW_BIN = 0.1
 
 
 def _reach_law(best, use, normals, away, h):
     """(k, p, f) of the shadows' outer reach L + P = k h |n . away|^p from the accepted
-    shelves reaching past 1.5 blurs (least squares on logarithms), and the share f of it
-    that is penumbra (the median: a lamp's angular size makes the penumbra grow with the
-    distance, as the reach does), or None."""
+    shelves of the headings whose shelves reach past 1.5 blurs (least squares on
+    logarithms), and the share f of it that is penumbra (the median: a lamp's angular size
+    makes the penumbra grow with the distance, as the reach does), or None."""
     P = best.params
     na = np.abs(normals @ (away / np.hypot(*away)))
     outer = P[:, 9] + P[:, 10]
-    wide = use & (outer > 1.5 * P[:, 5]) & (na > 0.05)
+    # Chosen by heading, not by the reach each shelf read: of the beads nearly along the
+    # lamp only the shelves that happened to read long pass "wider than 1.5 blurs", which
+    # flattens the law (a defocused flatbed scan with translucent flanks: p 0.39 so, 0.64
+    # by heading bins, 1.7 with D held; docs/MEASUREMENT.md "The lamp's shadow").
+    wide = np.zeros(len(na), bool)
+    for lo in np.arange(0.0, 1.0, REACH_LAW_BIN):
+        b = use & (na > max(lo, 0.05)) & (na <= lo + REACH_LAW_BIN + 1e-9)
+        if b.sum() >= 5 and np.median(outer[b]) > 1.5 * np.median(P[b, 5]):
+            wide |= b
     if wide.sum() < SHADOW_MIN_STATIONS or np.ptp(na[wide]) < REACH_LAW_SPAN:
         return None
     A = np.column_stack([np.ones(wide.sum()), np.log(na[wide])])
@@ -298,11 +311,12 @@ def _reach_law(best, use, normals, away, h):
     return float(np.exp(a)), float(p), float(np.median(P[wide, 10] / outer[wide]))
 
 
-def _held_reach(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away, depth, law, use, best, h):
+def _held_reach(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away, depth, law, use, best, base_rms, h):
     """The stations ``idx`` on which no shelf passed the F test, refitted on the side away
     from the lamp with D held at ``depth`` and L at the reach ``law`` (k, p): no parameter
-    added, kept where that fits better than the plain edge pair. Updates ``use`` and
-    ``best`` in place."""
+    added (the glare streak free beside it where :func:`_shelf_test` found one: G > 0 in
+    ``best``), kept where that fits better than what the shelf was tested against
+    (``base_rms``). Updates ``use`` and ``best`` in place."""
     k, p, fade = law
     p = float(np.clip(p, 0.5, 3.0))
     a = away / np.hypot(*away)
@@ -310,39 +324,59 @@ def _held_reach(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away, depth, la
     reach = np.minimum(k * h[idx] * na ** p, reach_mm[idx])        # L + P
     todo = np.flatnonzero(~use & (reach > 0.1 * fit.params[idx, 5]))
     facing = np.where(normals[idx] @ a >= 0, 1.0, -1.0)
+    lit = best.params[:, 6] > 0
     for side in (-1.0, 1.0):
-        o = todo[facing[todo] == side]
-        if len(o) == 0:
-            continue
-        i = idx[o]
-        f = edges.fit_shadow(t[i], y[i], fit.params[i, :6], side, reach_mm[i], fixed_s=fixed_s, weights=wts[i],
-                             dark=depth * np.abs(_background(fit.params[i], side)),
-                             reach_held=(1 - fade) * reach[o], fade_held=np.maximum(fade * reach[o], 0.05 * fit.params[i, 5]))
-        better = f.ok & (f.rms < fit.rms[i])
-        j = o[better]
-        use[j] = True
-        best.params[j], best.sd[j], best.rms[j], best.ok[j] = f.params[better], f.sd[better], f.rms[better], \
-            f.ok[better]
+        for glare in (False, True):
+            o = todo[(facing[todo] == side) & (lit[todo] == glare)]
+            if len(o) == 0:
+                continue
+            i = idx[o]
+            f = edges.fit_shadow(t[i], y[i], fit.params[i, :6], side, reach_mm[i], fixed_s=fixed_s, weights=wts[i],
+                                 dark=depth * np.abs(_background(fit.params[i], side)),
+                                 reach_held=(1 - fade) * reach[o],
+                                 fade_held=np.maximum(fade * reach[o], 0.05 * fit.params[i, 5]),
+                                 glare_height_mm=h[i] if glare else None)
+            better = f.ok & (f.rms < base_rms[o])
+            j = o[better]
+            use[j] = True
+            best.params[j], best.sd[j], best.rms[j], best.ok[j] = f.params[better], f.sd[better], f.rms[better], \
+                f.ok[better]
 
 
 def _shelf_test(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away=None, depth=None):
     """For the stations ``idx``: whether a shelf passes the F test, the better side's fit
-    (N, 10), and that side as a bed direction (side x normal). ``away`` (a bed direction):
-    only the side that faces it; None: both, the better kept. ``depth``: D held at that
-    share of the plate's brightness beside the edge (two parameters added, not three)."""
+    (N, 11), that side as a bed direction (side x normal), and the rms of the fit the shelf
+    was tested against (N,). ``away`` (a bed direction): only the side that faces it; None:
+    both, the one with the larger F kept. ``depth``: D held at that share of the plate's
+    brightness beside the edge (two parameters added, not three).
+
+    The lamp that casts a shadow outside one edge puts its glare streak inside the other: a
+    station whose streak there passes STREAK_F is tested as streak + shelf against the
+    streak alone (its G > 0 in the fit returned), the others as shelf against the plain
+    pair. Without it a flatbed scan in glare (dark beads, light plate) fitted shelves of
+    0.11 of the plate's light for 0.5, too few to be believed, and the streak step then took
+    the unmodelled shadow for more streak: +40 um on the beads across the lamp."""
     n = len(idx)
     m_eff = wts[idx].sum(axis=1)
     k0 = 5 if fixed_s else 6
     extra = 3 if depth is None else 2            # D, L, P free; L, P with D held
+    h = reach_mm / SHADOW_REACH_PER_HEIGHT
     rss0 = fit.rms[idx] ** 2 * np.maximum(m_eff - k0, 1)
-    best_rss = np.full(n, np.inf)
+    best_F = np.full(n, -np.inf)
     best_side = np.zeros(n)
+    base_rms = fit.rms[idx].copy()
     best = edges.ProfileFit(np.full((n, 11), np.nan), np.full((n, 11), np.nan), np.full(n, np.nan), np.zeros(n, bool))
     if away is None:
         sides = ((-1.0, np.arange(n)), (1.0, np.arange(n)))
     else:
         facing = np.where(normals[idx] @ np.asarray(away, float) >= 0, 1.0, -1.0)
         sides = tuple((s, np.flatnonzero(facing == s)) for s in (-1.0, 1.0))
+
+    def f_stat(base, k, f, o):
+        rss = np.where(f.ok, f.rms ** 2 * np.maximum(m_eff[o] - k - extra, 1), np.inf)
+        with np.errstate(invalid="ignore"):
+            return (base - rss) / extra / np.maximum(rss / np.maximum(m_eff[o] - k - extra, 1), 1e-300)
+
     for side, o in sides:
         if len(o) == 0:
             continue
@@ -350,13 +384,27 @@ def _shelf_test(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away=None, dept
         dark = None if depth is None else depth * np.abs(_background(fit.params[i], side))
         f = edges.fit_shadow(t[i], y[i], fit.params[i, :6], side, reach_mm[i], fixed_s=fixed_s, weights=wts[i],
                              dark=dark)
-        rss = np.where(f.ok, f.rms ** 2 * np.maximum(m_eff[o] - k0 - extra, 1), np.inf)
-        better = rss < best_rss[o]
+        F = f_stat(rss0[o], k0, f, o)
+        rms_base = fit.rms[i].copy()
+        g = edges.fit_streak(t[i], y[i], fit.params[i, :6], -side, h[i], fixed_s=fixed_s, weights=wts[i])
+        rss_g = np.where(g.ok, g.rms ** 2 * np.maximum(m_eff[o] - k0 - 2, 1), np.inf)
+        with np.errstate(invalid="ignore"):
+            F_g = 0.5 * (rss0[o] - rss_g) / np.maximum(rss_g / np.maximum(m_eff[o] - k0 - 2, 1), 1e-300)
+        lit = np.flatnonzero(np.isfinite(F_g) & (F_g > STREAK_F) & (g.params[:, 6] > 0))
+        if len(lit):
+            i_l = i[lit]
+            fj = edges.fit_shadow(t[i_l], y[i_l], g.params[lit, :6], side, reach_mm[i_l], fixed_s=fixed_s,
+                                  weights=wts[i_l], dark=None if dark is None else dark[lit], glare_height_mm=h[i_l])
+            F[lit] = f_stat(rss_g[lit], k0 + 2, fj, o[lit])
+            rms_base[lit] = g.rms[lit]
+            for a, b in ((f.params, fj.params), (f.sd, fj.sd)):
+                a[lit] = b
+            f.rms[lit], f.ok[lit] = fj.rms, fj.ok
+        F = np.where(np.isfinite(F), F, -np.inf)
+        better = F > best_F[o]
         j = o[better]
-        best_rss[j], best_side[j] = rss[better], side
+        best_F[j], best_side[j], base_rms[j] = F[better], side, rms_base[better]
         best.params[j], best.sd[j], best.rms[j], best.ok[j] = f.params[better], f.sd[better], f.rms[better], \
             f.ok[better]
-    with np.errstate(invalid="ignore"):
-        F = (rss0 - best_rss) / extra / np.maximum(best_rss / np.maximum(m_eff - k0 - extra, 1), 1e-300)
-    use = np.isfinite(F) & (F > SHADOW_F) & (best.params[:, 8] > 0) & (best.params[:, 9] > 0)
-    return use, best, best_side[:, None] * normals[idx]
+    use = (best_F > SHADOW_F) & (best.params[:, 8] > 0) & (best.params[:, 9] > 0)
+    return use, best, best_side[:, None] * normals[idx], base_rms

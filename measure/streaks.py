@@ -107,6 +107,13 @@ def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True,
             return fit, streak
         if np.hypot(*light) < STREAK_SURE_COHERENCE:
             light = None
+    # The lamp whose shadow the beads show lights their other flank: a "streak" on the
+    # shadow's side is the shadow misfitted (where the picture blurs it over, or a colour
+    # axis keeps little of a grey shadow: +66 um on the beads across the lamp of a light
+    # plate's flatbed scan in glare, its streaks on the shadow's side at 99 % of them).
+    lamp = _lamp(shadows)
+    if lamp is not None:
+        light = lamp
     use, best, toward = _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light, shadows=shadows)
     # One light lights one flank: the streak's side, as a bed direction (side x normal),
     # points the same way at every station. Edge-model misfit that merely looks like a
@@ -116,7 +123,7 @@ def with_glare_streaks(t, y, fit, wts, height_mm, normals, fixed_s: bool = True,
     if np.hypot(*light) < STREAK_COHERENCE:
         use[:] = False
     else:
-        use &= toward @ light > 0
+        use &= toward @ (light if lamp is None else lamp) > 0
     streak[idx[use]] = True
     side = np.sign(np.einsum("ij,ij->i", toward, normals[idx]))
     best = _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s, shadows)
@@ -178,6 +185,15 @@ def _common_depth(t, y, fit, wts, height_mm, idx, use, best, side, fixed_s, shad
     out = edges.ProfileFit(best.params.copy(), best.sd.copy(), best.rms.copy(), best.ok.copy())
     out.params[on], out.sd[on], out.rms[on] = f.params, f.sd, f.rms
     return out
+
+
+def _lamp(shadows):
+    """The bed direction toward the lamp whose shadows the beads show (unit; modelled or
+    blurred over), or None."""
+    if shadows is None:
+        return None
+    away = shadows.away if shadows.away is not None else shadows.unresolved
+    return None if away is None else -np.asarray(away, float) / np.hypot(*away)
 
 
 def _streak_test(t, y, fit, wts, height_mm, normals, idx, fixed_s, light=None, shadows=None):

@@ -9,7 +9,8 @@ from scipy.ndimage import gaussian_filter1d
 
 from measure import edges
 from measure.phenomena import cast_shadow
-from measure.shadows import with_shadows
+from measure.shadows import _reach_law, no_shadows, with_shadows
+from measure.streaks import with_glare_streaks
 
 DX_MM = 0.002          # the fine grid the profiles are drawn on
 STEP_MM = 0.0085       # the profiles' sampling (600 dpi flatbed, 5 samples a pixel)
@@ -17,10 +18,11 @@ BLUR_MM = 0.035
 
 
 def _profile(w, *, across=1.0, lamp_side=-1.0, h=0.2, elevation_deg=45.0, lamp_deg=6.0, depth=0.5,
-             bead=0.08, plate=0.70, c=0.0, noise=0.0, rng=None, half_mm=0.5):
+             bead=0.08, plate=0.70, c=0.0, noise=0.0, rng=None, half_mm=0.5, glare=0.0, shine=60.0):
     """(t, y): a rounded bead (the slicer's flank, lateral radius h/2) of width w centred at
     c, its profile's normal ``across`` (cos of the angle to the lamp's horizontal direction),
-    the lamp on the ``lamp_side`` of t, its shadow cast on plate and bead alike."""
+    the lamp on the ``lamp_side`` of t, its shadow cast on plate and bead alike; ``glare``:
+    the lamp's Blinn-Phong highlight (peak, exponent ``shine``) on the flank facing it."""
     x = np.arange(-1.0, 1.0, DX_MM)
     d = np.abs(x - c)
     r = min(h / 2, w / 2)
@@ -33,8 +35,15 @@ def _profile(w, *, across=1.0, lamp_side=-1.0, h=0.2, elevation_deg=45.0, lamp_d
     # in the profile's plane the lamp stands higher the more the bead lies along it: its
     # horizontal part there is cos(e) x across
     light = np.array([lamp_side * np.cos(e) * across, 0.0, np.sin(e)])
-    s = cast_shadow(hf, toward, light / np.linalg.norm(light), step_mm=0.5 * DX_MM, lamp_deg=lamp_deg)[1]
-    img = gaussian_filter1d(np.where(d <= w / 2, bead, plate) * (1 - depth * s), BLUR_MM / DX_MM)
+    light = light / np.linalg.norm(light)
+    s = cast_shadow(hf, toward, light, step_mm=0.5 * DX_MM, lamp_deg=lamp_deg)[1]
+    img = np.where(d <= w / 2, bead, plate) * (1 - depth * s)
+    if glare:
+        normal = np.column_stack([-np.gradient(z, x), np.zeros_like(x), np.ones_like(x)])
+        half_v = light + np.array([0.0, 0.0, 1.0])
+        cos_h = normal @ (half_v / np.linalg.norm(half_v)) / np.linalg.norm(normal, axis=1)
+        img = img + glare * np.clip(cos_h, 0, 1) ** shine * (d <= w / 2)
+    img = gaussian_filter1d(img, BLUR_MM / DX_MM)
     t = np.arange(-half_mm, half_mm, STEP_MM)
     y = np.interp(t, x, img)
     if noise:
@@ -57,6 +66,55 @@ def test_a_shadow_beside_a_bead_is_fitted_and_its_width_kept(lamp_deg):
         assert 0.3 < sh.params[0, 8] / 0.70 < 0.55               # D: the shadow takes half the light
         wrong = edges.fit_shadow(t[None], y[None], plain.params, lamp_side, 0.4, fixed_s=False)
         assert wrong.rms[0] > 3 * sh.rms[0]                        # the lamp's side has none
+
+
+def test_the_lamps_glare_is_fitted_beside_its_shadow():
+    """The lamp that shades the plate beside one edge puts its highlight on the other flank
+    (drawn here as Blinn-Phong on the rounded flank, not the model's line): the shelf alone
+    takes less of the plate's light and leaves the bead wider; with the streak beside it the
+    profile is explained to a seventh of the shelf's rms and the width kept."""
+    for lamp_side in (-1.0, 1.0):
+        t, y = _profile(0.48, lamp_side=lamp_side, glare=0.6)
+        p0 = edges.initial_guess(t[None], y[None], -1.0, BLUR_MM)
+        plain = edges.fit_profiles(t[None], y[None], p0)
+        alone = edges.fit_shadow(t[None], y[None], plain.params, -lamp_side, 0.4, fixed_s=False)
+        both = edges.fit_shadow(t[None], y[None], plain.params, -lamp_side, 0.4, fixed_s=False, glare_height_mm=0.2)
+        assert both.ok[0] and both.params[0, 6] > 0 and both.rms[0] < 0.3 * alone.rms[0]
+        assert abs(both.width[0] - 0.48) < 0.012 and alone.width[0] - both.width[0] > 0.004
+        assert 0.4 < both.params[0, 8] / 0.70 < 0.55
+
+
+def test_the_reach_law_is_read_by_heading_not_by_the_reach_each_shelf_read():
+    """Shelves whose reach scatters (lognormal, 35 %) about L + P = 0.75 h |n.a|^1.5 under a
+    blur of 0.05 mm: chosen as "reaching past 1.5 blurs" one by one, the near-along beads'
+    long draws flatten the law to p ~ 0.7; chosen by heading bins, p is read within 0.2."""
+    rng = np.random.default_rng(0)
+    n = 600
+    na = rng.uniform(0.3, 1.0, n)
+    normals = np.column_stack([np.sqrt(1 - na ** 2), na])
+    h = np.full(n, 0.2)
+    outer = 0.75 * h * na ** 1.5 * np.exp(0.35 * rng.standard_normal(n))
+    p = np.zeros((n, 11))
+    p[:, 5], p[:, 8], p[:, 9], p[:, 10] = 0.05, 0.3, 0.6 * outer, 0.4 * outer
+    k, power, fade = _reach_law(edges.ProfileFit(p, np.zeros_like(p), np.zeros(n), np.ones(n, bool)),
+                                np.ones(n, bool), normals, np.array([0.0, 1.0]), h)
+    assert abs(power - 1.5) < 0.2 and abs(k - 0.75) < 0.1 and abs(fade - 0.4) < 0.01
+
+
+def test_no_streak_on_the_shadows_side_of_a_known_lamp():
+    """A shadow no shelf models (blurred over) looks like a streak inside the edge away from
+    the lamp: the streak step took it so at every bead across the lamp and read them 30 um
+    wider still. Told where the lamp is (the shadows' direction), it puts no streak there."""
+    t, y, fit, normals, widths = _stations(240, np.random.default_rng(3))
+    h = np.full(len(t), 0.2)
+    across = np.abs(normals[:, 1]) >= 0.7
+    blind, took = with_glare_streaks(t, y, fit, np.ones_like(y), h, normals)
+    assert took[across].mean() > 0.9 and np.median(blind.width[across] - fit.width[across]) > 0.02
+    lamp = no_shadows(len(t), h)
+    lamp.unresolved = np.array([0.0, 1.0])                 # away from the lamp at -y
+    told, took = with_glare_streaks(t, y, fit, np.ones_like(y), h, normals, shadows=lamp)
+    assert not took.any()
+    np.testing.assert_array_equal(told.params, fit.params)
 
 
 def _stations(n, rng, *, shadow=True, lamp_side_along_y=-1.0, misfit=0.0):
