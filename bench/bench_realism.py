@@ -63,6 +63,9 @@ SCENES = [("flatbed, none (erf beads)", "flatbed", "none", "dark", "opaque", "bo
     # the plate beside every bead that lies across it; not in "all" either
     ("flatbed, shadows", "flatbed", "shadows", "dark", "opaque", "bowden"),
     ("flatbed, shadows, light plate, direct drive", "flatbed", "shadows", "light", "opaque", "direct"),
+    # the lamp's glare on the flank facing it, its shadow beside the other (measured in grey)
+    ("flatbed, shadows + glare, light plate, direct drive", "flatbed", "shadows,glare", "light", "opaque",
+     "direct"),
     ("flatbed, all + shadows, light plate (a PNG scan), direct drive", "flatbed", "all-but-jpeg,shadows", "light",
      "opaque", "direct"),
     ("phone 35 deg, all + shadows, direct drive", "phone", "all,shadows", "dark", "opaque", "direct"),

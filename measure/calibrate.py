@@ -197,7 +197,8 @@ class WidthCalibration:
     warnings        e.g. a width still changing inside a settled section
     heading_levels_mm  per test-track station, what its heading adds to its apparent width
                     beyond the test tracks' mean (mm), taken off with the offset where the
-                    lamp's shadows were found (measure/pipeline.py); None elsewhere
+                    lamp's shadows were found, and alone where they could not be modelled
+                    (the offset then not applied; measure/pipeline.py); None elsewhere
     """
 
     offset_mm: float = float("nan")
