@@ -342,27 +342,33 @@ def _held_reach(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away, depth, la
                 f.ok[better]
 
 
-def _shelf_test(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away=None, depth=None):
+def _shelf_test(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away=None, depth=None, glare=True):
     """For the stations ``idx``: whether a shelf passes the F test, the better side's fit
     (N, 11), that side as a bed direction (side x normal), and the rms of the fit the shelf
     was tested against (N,). ``away`` (a bed direction): only the side that faces it; None:
-    both, the one with the larger F kept. ``depth``: D held at that share of the plate's
-    brightness beside the edge (two parameters added, not three).
+    both. ``depth``: D held at that share of the plate's brightness beside the edge (two
+    parameters added, not three).
 
-    The lamp that casts a shadow outside one edge puts its glare streak inside the other:
-    each station is also tested as streak + shelf against the streak alone, and the larger
-    F kept (its G > 0 in the fit returned where that was the streak's). With the blur free
-    the streak alone barely improves on a plain pair whose blur took glare and shadow both,
-    so it is not asked to pass first (22 % of the beads across the lamp took a shelf then,
-    against all with the blur held). Without it a flatbed scan in glare (dark beads, light plate) fitted shelves of
-    0.11 of the plate's light for 0.5, too few to be believed, and the streak step then took
-    the unmodelled shadow for more streak: +40 um on the beads across the lamp."""
+    The lamp that casts a shadow outside one edge puts its glare streak inside the other
+    (``glare``): each side is fitted as shelf alone, against the plain pair, and as streak +
+    shelf, against the streak alone (G > 0 in the fit returned), the one with the larger F
+    kept; of the two sides, the one whose fit leaves the smaller residual variance. With
+    the blur free the streak alone barely improves on a plain pair whose blur took glare
+    and shadow both, so it is not asked to pass first (22 % of the beads across the lamp
+    took a shelf then, against all with the blur held); and the side is chosen by the fit,
+    not by the larger F, whose baselines differ between the sides (a streak misplaced on
+    the shadow's flank is a poor one: 74 % of the beads 30-55 deg off the lamp took the
+    wrong side so). Without the streak a flatbed scan in glare (dark beads, light plate)
+    fitted shelves of 0.11 of the plate's light for 0.5, too few to be believed, and the
+    streak step then took the unmodelled shadow for more streak: +40 um on the beads
+    across the lamp."""
     n = len(idx)
     m_eff = wts[idx].sum(axis=1)
     k0 = 5 if fixed_s else 6
     extra = 3 if depth is None else 2            # D, L, P free; L, P with D held
     h = reach_mm / SHADOW_REACH_PER_HEIGHT
     rss0 = fit.rms[idx] ** 2 * np.maximum(m_eff - k0, 1)
+    best_var = np.full(n, np.inf)
     best_F = np.full(n, -np.inf)
     best_side = np.zeros(n)
     base_rms = fit.rms[idx].copy()
@@ -373,10 +379,13 @@ def _shelf_test(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away=None, dept
         facing = np.where(normals[idx] @ np.asarray(away, float) >= 0, 1.0, -1.0)
         sides = tuple((s, np.flatnonzero(facing == s)) for s in (-1.0, 1.0))
 
-    def f_stat(base, k, f, o):
-        rss = np.where(f.ok, f.rms ** 2 * np.maximum(m_eff[o] - k - extra, 1), np.inf)
+    def fitted(o, f, k, base_rss):
+        """Residual variance and the shelf's F of the fits f (stations o, k parameters
+        before the shelf's)."""
+        dof = np.maximum(m_eff[o] - k - extra, 1)
+        rss = np.where(f.ok, f.rms ** 2 * dof, np.inf)
         with np.errstate(invalid="ignore"):
-            return (base - rss) / extra / np.maximum(rss / np.maximum(m_eff[o] - k - extra, 1), 1e-300)
+            return rss / dof, (base_rss - rss) / extra / np.maximum(rss / dof, 1e-300)
 
     for side, o in sides:
         if len(o) == 0:
@@ -385,22 +394,23 @@ def _shelf_test(t, y, fit, wts, normals, reach_mm, idx, fixed_s, away=None, dept
         dark = None if depth is None else depth * np.abs(_background(fit.params[i], side))
         f = edges.fit_shadow(t[i], y[i], fit.params[i, :6], side, reach_mm[i], fixed_s=fixed_s, weights=wts[i],
                              dark=dark)
-        F = f_stat(rss0[o], k0, f, o)
+        var, F = fitted(o, f, k0, rss0[o])
         rms_base = fit.rms[i].copy()
-        g = edges.fit_streak(t[i], y[i], fit.params[i, :6], -side, h[i], fixed_s=fixed_s, weights=wts[i])
-        rss_g = np.where(g.ok, g.rms ** 2 * np.maximum(m_eff[o] - k0 - 2, 1), np.inf)
-        fj = edges.fit_shadow(t[i], y[i], g.params[:, :6], side, reach_mm[i], fixed_s=fixed_s, weights=wts[i],
-                              dark=dark, glare_height_mm=h[i])
-        F_j = np.where(fj.params[:, 6] > 0, f_stat(rss_g, k0 + 2, fj, o), -np.inf)
-        lit = np.flatnonzero(np.isfinite(F_j) & (F_j > np.where(np.isfinite(F), F, -np.inf)))
-        F[lit], rms_base[lit] = F_j[lit], g.rms[lit]
-        for a, b in ((f.params, fj.params), (f.sd, fj.sd), (f.rms, fj.rms), (f.ok, fj.ok)):
-            a[lit] = b[lit]
-        F = np.where(np.isfinite(F), F, -np.inf)
-        better = F > best_F[o]
+        if glare:
+            g = edges.fit_streak(t[i], y[i], fit.params[i, :6], -side, h[i], fixed_s=fixed_s, weights=wts[i])
+            fj = edges.fit_shadow(t[i], y[i], g.params[:, :6], side, reach_mm[i], fixed_s=fixed_s, weights=wts[i],
+                                  dark=dark, glare_height_mm=h[i])
+            rss_g = np.where(g.ok, g.rms ** 2 * np.maximum(m_eff[o] - k0 - 2, 1), np.inf)
+            var_j, F_j = fitted(o, fj, k0 + 2, rss_g)
+            lit = np.flatnonzero(fj.ok & (fj.params[:, 6] > 0) & np.isfinite(F_j)
+                                 & (F_j > np.where(np.isfinite(F), F, -np.inf)))
+            var[lit], F[lit], rms_base[lit] = var_j[lit], F_j[lit], g.rms[lit]
+            for a, b in ((f.params, fj.params), (f.sd, fj.sd), (f.rms, fj.rms), (f.ok, fj.ok)):
+                a[lit] = b[lit]
+        better = np.isfinite(var) & (var < best_var[o])
         j = o[better]
-        best_F[j], best_side[j], base_rms[j] = F[better], side, rms_base[better]
+        best_var[j], best_F[j], best_side[j], base_rms[j] = var[better], F[better], side, rms_base[better]
         best.params[j], best.sd[j], best.rms[j], best.ok[j] = f.params[better], f.sd[better], f.rms[better], \
             f.ok[better]
-    use = (best_F > SHADOW_F) & (best.params[:, 8] > 0) & (best.params[:, 9] > 0)
+    use = np.isfinite(best_F) & (best_F > SHADOW_F) & (best.params[:, 8] > 0) & (best.params[:, 9] > 0)
     return use, best, best_side[:, None] * normals[idx], base_rms
