@@ -160,27 +160,36 @@ def test_one_lamps_shadows_are_found_and_taken_out_and_none_are_invented():
         np.testing.assert_array_equal(out.params, fit.params)
 
 
-def test_a_flatbeds_lamp_shadows_are_measured_out_of_a_scan(tmp_path):
-    """A 600 dpi flatbed scan of dark beads on a light plate, the scanner's lamp at 45 deg
-    (measure/phenomena.py shadows): without the shelf the beads across the lamp read up to
-    +70 um; `calib measure`'s pipeline finds the lamp (its side), fits the shelves, applies
-    the width reference and takes each station's heading level off: the widths within a
-    few um, and the summary says where the shadows fell."""
+def _light_plate_scan(tmp_path, realism):
+    """A small spiral-step print (direct drive, 0.5 / 1.0 mm) scanned at 600 dpi on the light
+    plate with ``realism``, seed 3 (the renderer's flatbed lamp at +-y): (manifest, render,
+    PNG path)."""
     import cv2
 
-    import measure.widths as mw
     from calib.commands.simulate import simulate_scan
     from fit.truth import load_truth
-    from measure.pipeline import measure_scan
     from patterns import spiral_step
     from patterns.profile import data_dir
 
     _, man = spiral_step.generate("direct_drive", widths_mm=(0.5, 1.0), speeds_mm_s=(20.0,), n_steps=4)[:2]
     spec, values, _ = load_truth(data_dir() / "truths" / "direct_drive.toml", man.printer)
     r, _ = simulate_scan(man, spec, values, "flatbed", profile=man.printer, dpi=600.0, seed=3, plate="light",
-                         realism="shadows", clutter=False)
+                         realism=realism, clutter=False)
     path = tmp_path / "scan.png"
     cv2.imwrite(str(path), r.image)
+    return man, r, path
+
+
+def test_a_flatbeds_lamp_shadows_are_measured_out_of_a_scan(tmp_path):
+    """A 600 dpi flatbed scan of dark beads on a light plate, the scanner's lamp at 45 deg
+    (measure/phenomena.py shadows): without the shelf the beads across the lamp read up to
+    +70 um; `calib measure`'s pipeline finds the lamp (its side), fits the shelves, applies
+    the width reference and takes each station's heading level off: the widths within a
+    few um, and the summary says where the shadows fell."""
+    import measure.widths as mw
+    from measure.pipeline import measure_scan
+
+    man, r, path = _light_plate_scan(tmp_path, "shadows")
     res = measure_scan(path, man)
     tb, tr = res.table, r.table
     ok = tb.valid & (tr.width_mm > 0)
@@ -209,20 +218,9 @@ def test_a_shadow_blurred_over_is_said_and_the_headings_levelled(tmp_path):
     takes what each heading adds off the widths, so what is left is an offset the fit's
     scan_bias takes (the errors' sd about their mean 37 um before: the streak step put the
     shadow on the far flank as glare)."""
-    import cv2
-
-    from calib.commands.simulate import simulate_scan
-    from fit.truth import load_truth
     from measure.pipeline import measure_scan
-    from patterns import spiral_step
-    from patterns.profile import data_dir
 
-    _, man = spiral_step.generate("direct_drive", widths_mm=(0.5, 1.0), speeds_mm_s=(20.0,), n_steps=4)[:2]
-    spec, values, _ = load_truth(data_dir() / "truths" / "direct_drive.toml", man.printer)
-    r, _ = simulate_scan(man, spec, values, "flatbed", profile=man.printer, dpi=600.0, seed=3, plate="light",
-                         realism="profile,translucent,glare,grain,light,defocus,shadows", clutter=False)
-    path = tmp_path / "scan.png"
-    cv2.imwrite(str(path), r.image)
+    man, r, path = _light_plate_scan(tmp_path, "profile,translucent,glare,grain,light,defocus,shadows")
     res = measure_scan(path, man)
     cal = res.summary["apparent_width"]
     assert res.summary["shadows"]["unresolved"] and not cal["applied"]
