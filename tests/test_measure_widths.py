@@ -523,19 +523,19 @@ def test_a_scan_without_glare_tries_one_station_in_eight_for_a_streak(flat, monk
     """The glare streak fits cost more than the rest of the measurement (12 MP phone render:
     18.3 s -> 5.9 s). On a render without glare one station in STREAK_SCREEN_EVERY is tried,
     and the widths are those of trying them all."""
-    import measure.edges as me
     from measure import streaks
     man, r, wm = flat
     g = gray_of(r)
     reg = register(g, man)
     tried = []
-    orig = me.fit_streak
+    orig = streaks._streak_fits
 
-    def counting(t, *a, **k):
-        tried.append(len(t))
-        return orig(t, *a, **k)
+    # the streak step's own fits (the shadow screen fits streaks beside its shelves too)
+    def counting(t, y, params, rows, *a, **k):
+        tried.append(len(rows))
+        return orig(t, y, params, rows, *a, **k)
 
-    monkeypatch.setattr(me, "fit_streak", counting)
+    monkeypatch.setattr(streaks, "_streak_fits", counting)
     screened = measure_widths(g, man, reg, color=r.image)
     n_screened = sum(tried)
     tried.clear()
