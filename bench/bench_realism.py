@@ -55,6 +55,9 @@ SCENES = [("flatbed, none (erf beads)", "flatbed", "none", "dark", "opaque", "bo
      "direct"),
     ("phone 35 deg, all, Bowden", "phone", "all", "dark", "opaque", "bowden"),
     ("phone 35 deg, all, direct drive", "phone", "all", "dark", "opaque", "direct"),
+    # dark plastic on a light plate, as a phone sees it: the grain is in the luminance, the
+    # bead's colour in a 4:2:0 JPEG's half-resolution chroma (measure/contrast.py)
+    ("phone 35 deg, all, light plate, direct drive", "phone", "all", "light", "opaque", "direct"),
     # a textured plate as a phone sees it (measure/phenomena.py sparkle: the realdata
     # photos' width scatter); not in "all", so the rows above are without it
     ("phone 35 deg, all + sparkle (textured plate under a lamp), Bowden", "phone", "all,sparkle", "dark",

@@ -96,7 +96,7 @@ def edge_pair(t, p) -> np.ndarray:
     return b0 + b1 * t + 0.5 * A * (erf(z1) - erf(z2))
 
 
-def width_per_blur(t, p, weights=None, h: float = 1e-4, chunk: int = 2000) -> np.ndarray:
+def width_per_blur(t, p, weights=None, h: float = 1e-4, chunk: int = 2000, amp_lam=None) -> np.ndarray:
     """dw/ds (mm per mm) of a fit with the blur held at s: how far the fitted width moves
     when the blur it was held at is off, the other parameters (b0, b1, A, c) refitting.
 
@@ -106,14 +106,18 @@ def width_per_blur(t, p, weights=None, h: float = 1e-4, chunk: int = 2000) -> np
     a function of w / s and the window: with 0.5 mm + 3 s beyond each edge about -0.5 at
     w = 6 s, -1.4 at 4 s, -2.5 at 3 s, -4.8 at 2 s and -7.1 at 1.5 s (a narrow bead's
     profile is the blur's: its width and height trade, its area A w stays).
+    ``amp_lam`` (N,): the fit's prior on A (:func:`fit_profiles` ``amp_prior``'s lam), in
+    J'WJ as in the fit: with the contrast known, a narrow bead's width is its area's and
+    hardly moves with the blur.
     t (N, M) mm, p (N, 6), weights (N, M) 0/1; NaN where singular.
     """
     t = np.asarray(t, float)
     p = np.asarray(p, float)
     wts = np.ones_like(t) if weights is None else np.asarray(weights, float)
+    lam = np.zeros(len(p)) if amp_lam is None else np.broadcast_to(np.asarray(amp_lam, float), (len(p),))
     if len(p) > chunk:
-        return np.concatenate([width_per_blur(t[i:i + chunk], p[i:i + chunk], wts[i:i + chunk], h, chunk)
-                               for i in range(0, len(p), chunk)])
+        return np.concatenate([width_per_blur(t[i:i + chunk], p[i:i + chunk], wts[i:i + chunk], h, chunk,
+                                              lam[i:i + chunk]) for i in range(0, len(p), chunk)])
     f0 = edge_pair(t, p)
     cols = []
     for k in range(6):
@@ -123,6 +127,7 @@ def width_per_blur(t, p, weights=None, h: float = 1e-4, chunk: int = 2000) -> np
     J = np.stack(cols[:5], axis=-1) * np.sqrt(wts)[..., None]          # (N, M, 5)
     g = cols[5] * np.sqrt(wts)
     JTJ = np.einsum("nmi,nmj->nij", J, J)
+    JTJ[:, 2, 2] += lam
     JTg = np.einsum("nmi,nm->ni", J, g)
     out = np.full(len(p), np.nan)
     ok = np.isfinite(JTJ).all(axis=(1, 2)) & np.isfinite(JTg).all(axis=1) & (np.abs(np.linalg.det(JTJ)) > 0)
@@ -269,6 +274,21 @@ def _normal_equations(t, y, wts, p, rows, fixed_s: bool, side: float, shade: flo
     return cost, JTJ, JTr
 
 
+def _with_amp_prior(normal, p, rows, amp_prior):
+    """The normal equations ``normal`` (cost, J^T W J, J^T W r) of profiles ``rows`` with the
+    prior term lam (A - A_ref)^2 on the contrast (:func:`fit_profiles`' ``amp_prior``, (N, 2)
+    columns A_ref, lam): a pseudo-observation of A, whose Jacobian is sqrt(lam) on A's
+    column (the third free one in every model)."""
+    if amp_prior is None:
+        return normal
+    cost, JTJ, JTr = normal
+    a_ref, lam = amp_prior[rows, 0], amp_prior[rows, 1]
+    d = a_ref - p[rows, 2]
+    JTJ[:, 2, 2] += lam
+    JTr[:, 2] += lam * d
+    return cost + lam * d * d, JTJ, JTr
+
+
 def _free_columns(fixed_s: bool, side: float, shade: float = 0.0) -> list[int]:
     cols = [0, 1, 2, 3, 4] + ([] if fixed_s else [5])
     return cols + ([6, 7] if side else []) + ([8, 9, 10] if shade else [])
@@ -298,17 +318,24 @@ def initial_guess(t, y, polarity: float, s0) -> np.ndarray:
 
 
 def fit_profiles(t, y, p0, fixed_s: bool = False, weights=None, n_iter: int = 30,
-                 chunk: int = 4000) -> ProfileFit:
+                 chunk: int = 4000, amp_prior=None) -> ProfileFit:
     """Least-squares fit of the edge-pair model to N profiles at once (batched LM).
 
-    t, y     (N, M) profile coordinate (mm) and intensity
-    p0       (N, 6) start values (see :func:`initial_guess`)
-    fixed_s  keep the blur ``s`` at p0's value (5-parameter fit): use it once the blur is
-             known from wide beads, because for narrow beads (w < ~4 s) w, s and A are
-             nearly degenerate.
-    weights  (N, M) 0/1 mask of usable samples (e.g. inside the image); default all.
+    t, y       (N, M) profile coordinate (mm) and intensity
+    p0         (N, 6) start values (see :func:`initial_guess`)
+    fixed_s    keep the blur ``s`` at p0's value (5-parameter fit): use it once the blur is
+               known from wide beads, because for narrow beads (w < ~4 s) w, s and A are
+               nearly degenerate.
+    weights    (N, M) 0/1 mask of usable samples (e.g. inside the image); default all.
+    amp_prior  (A_ref, lam), each (N,): a Gaussian prior on the contrast A, the term
+               lam (A - A_ref)^2 added to the weighted sum of squares (lam = the profile's
+               noise variance over the prior's, sigma_y^2 / sigma_A^2): the MAP of the
+               edge pair under that prior. A bead under ~3 blurs shows its area A w more
+               than either (module docstring: the profile tends to A w / (sqrt(2 pi) s)
+               exp(-t^2 / 2 s^2)), and the plastic's contrast read on the scan's wide beads
+               tells A (measure/widths.py :func:`~measure.widths.scan_contrast`).
     """
-    return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=0.0)
+    return _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side=0.0, amp_prior=amp_prior)
 
 
 def fit_streak(t, y, p_plain, side: float, height_mm, fixed_s: bool = True, weights=None,
@@ -392,7 +419,7 @@ def fit_shadow(t, y, p_start, shade: float, reach_mm, fixed_s: bool = True, weig
 
 
 def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None, shade=0.0, reach_bounds=None,
-             dark_bounds=None, fade_bounds=None):
+             dark_bounds=None, fade_bounds=None, amp_prior=None):
     # one compiled signature: C-contiguous float64 (a broadcast t would compile another)
     t = np.ascontiguousarray(t, dtype=float)
     y = np.ascontiguousarray(y, dtype=float)
@@ -402,8 +429,11 @@ def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None,
     rb = np.zeros((len(t), 2)) if reach_bounds is None else reach_bounds
     kb = np.column_stack([np.zeros(len(t)), np.full(len(t), np.inf)]) if dark_bounds is None else dark_bounds
     fb = rb if fade_bounds is None else fade_bounds
+    ap = None if amp_prior is None else np.column_stack([np.broadcast_to(np.asarray(v, float), (len(t),))
+                                                         for v in amp_prior])
     out = [_fit_chunk(t[i:i + chunk], y[i:i + chunk], p0[i:i + chunk], fixed_s, wts[i:i + chunk], n_iter, side,
-                      db[i:i + chunk], shade, rb[i:i + chunk], kb[i:i + chunk], fb[i:i + chunk])
+                      db[i:i + chunk], shade, rb[i:i + chunk], kb[i:i + chunk], fb[i:i + chunk],
+                      None if ap is None else ap[i:i + chunk])
            for i in range(0, len(t), chunk)]
     if not out:
         z = np.zeros((0, p0.shape[1] if p0.ndim == 2 else 6))
@@ -412,7 +442,7 @@ def _fit_all(t, y, p0, fixed_s, weights, n_iter, chunk, side, depth_bounds=None,
 
 
 def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None, shade=0.0, reach_bounds=None,
-               dark_bounds=None, fade_bounds=None):
+               dark_bounds=None, fade_bounds=None, amp_prior=None):
     n = len(t)
     free = _free_columns(fixed_s, side, shade)
     npar = len(free)
@@ -423,7 +453,7 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None, shade
     act = np.arange(n)
     m_eff = wts.sum(axis=1)
     # the normal equations at the accepted point are all the iteration needs of the Jacobian
-    cost, JTJ, JTr = _normal_equations(t, y, wts, p, act, fixed_s, side, shade)
+    cost, JTJ, JTr = _with_amp_prior(_normal_equations(t, y, wts, p, act, fixed_s, side, shade), p, act, amp_prior)
     eye = np.eye(npar)
     trial_p = p.copy()
     # Keep the geometry physical: positive width and blur, centre inside the window, the
@@ -467,7 +497,8 @@ def _fit_chunk(t, y, p, fixed_s, wts, n_iter, side=0.0, depth_bounds=None, shade
         trial = pa.copy()
         trial[:, free] = np.clip(pf + delta, lo[act], hi[act])
         trial_p[act] = trial
-        cost_t, JTJ_t, JTr_t = _normal_equations(t, y, wts, trial_p, act, fixed_s, side, shade)
+        cost_t, JTJ_t, JTr_t = _with_amp_prior(_normal_equations(t, y, wts, trial_p, act, fixed_s, side, shade),
+                                               trial_p, act, amp_prior)
         better = cost_t < cost[act]
         ib = act[better]
         step_f = trial[:, free] - pf

@@ -309,6 +309,12 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     plain_w = fit.width.copy()
     fit, shade = with_shadows(t, y, fit, wts, height, nrm, model=shadows)
     fit, streak = with_glare_streaks(t, y, fit, wts, height, nrm, shadows=shade)
+    # presence, noise and misfit are judged on the fit with its contrast free (a prior on
+    # the contrast would read a bead where there is none, as a narrow one of full contrast)
+    free_fit, amp_lam = fit, np.zeros(n)
+    if plane is not None:
+        fit, amp_lam = _with_scan_contrast(t, y, fit, wts, smp, pol, (flag == "") & ~streak
+                                           & (shade.side == 0 if shade is not None else True))
 
     w = fit.width.copy()
     c = fit.centre.copy()
@@ -316,7 +322,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     sd = np.sqrt(sd ** 2 + (SD_FLOOR_PX / ppm_n) ** 2)
 
     # -- flags from the fit ---------------------------------------------------------------
-    amp = pol * fit.amplitude
+    amp = pol * free_fit.amplitude
     # A line that never printed has plate texture for its own "typical" amplitude: what a
     # bead of its width looks like comes from the whole scan too (a never-printed line on a
     # grained plate with logos passed 20 % of its stations as beads against its own median).
@@ -327,7 +333,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
                          / (2 * np.sqrt(2) * np.maximum(fit.params[:, 5], 1e-4)))
         a0 = float(np.median(amp[good] / ef[good])) if good.any() else 0.0
     a_ref = np.maximum(_track_median(smp.track, amp, good), SCAN_AMPLITUDE_FRACTION * a0 * ef)
-    noise = fit.rms
+    noise = free_fit.rms
     missing = (amp < MISSING_FRACTION * a_ref) | (amp < 3 * noise) | (w < 1.0 / ppm_n)
     if color is not None and colour_axis is not None and colour_axis.tells_presence:
         # plate grain can pass for a bead in grey, not in colour (measure/contrast.py)
@@ -383,7 +389,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     peers = np.asarray(smp.track, np.int64) * 1000 + np.where(
         np.isfinite(w_nom), np.round(np.nan_to_num(w_nom) / 0.05), 999).astype(np.int64)
     sd_ref = _group_median(peers, sd, fit.ok & (flag == ""), smp.track)
-    rel_rms = fit.rms / np.maximum(np.abs(amp), 1e-6)
+    rel_rms = free_fit.rms / np.maximum(np.abs(amp), 1e-6)
     rms_ref = _group_median(peers, rel_rms, fit.ok & (flag == ""), smp.track)
     # the line the track's beads lie on, not the commanded one: a real printer places a
     # track's beads off its commanded line (realdata StartStopTestPLA1: up to 0.24 mm, the
@@ -452,7 +458,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     # beads' error weighed as if known; with it -81 um, 0.61, 1.12 mm, 0.796 s.
     per_rel_blur = None
     if plane is not None:
-        per_rel_blur = np.where(w > 0, edges.width_per_blur(t, fit.params, wts) * fit.params[:, 5], np.nan)
+        per_rel_blur = np.where(w > 0, edges.width_per_blur(t, fit.params, wts, amp_lam=amp_lam) * fit.params[:, 5], np.nan)
     if per_rel_blur is not None and np.isfinite(blur_rel_sd):
         by_blur = np.abs(np.nan_to_num(per_rel_blur)) * blur_rel_sd
         sd, sd_own = np.hypot(sd, by_blur), np.hypot(sd_own, by_blur)
@@ -470,7 +476,7 @@ def measure_widths(image, manifest_or_samples, registration, *, manifest: Manife
     table = WidthTable(track=smp.track, s_mm=smp.s_mm, x_mm=smp.x_mm, y_mm=smp.y_mm, t_s=smp.t_s,
                        width_mm=w, width_sd_mm=sd, valid=valid, flag=flag, width_sd_own_mm=sd_own,
                        width_corr_prev=rho)
-    return WidthMeasurement(table=table, centre_mm=c, blur_mm=fit.params[:, 5], amplitude=fit.amplitude,
+    return WidthMeasurement(table=table, centre_mm=c, blur_mm=fit.params[:, 5], amplitude=free_fit.amplitude,
                             nx=nrm[:, 0], ny=nrm[:, 1], window_mm=half,
                             blur_plane_px=tuple(plane) if plane is not None else (), glare_streak=streak,
                             plain_width_mm=np.where(streak & (w > 0), plain_w, w),
@@ -497,6 +503,106 @@ def background_shift(x_mm, y_mm, plate_ends, amp, ok) -> np.ndarray:
         return out
     with np.errstate(invalid="ignore"):
         return np.abs(plate_ends - level[:, None]).max(axis=1) / a0
+
+
+#: Beads at least this many blurs wide show their contrast apart from their width
+#: (:func:`scan_contrast`): the edge pair's A and w separate there.
+CONTRAST_WIDE_BLURS = 4.0
+#: The plastic's contrast is known to no better than this share of itself at any station
+#: (:func:`scan_contrast`'s floor: the light, the plate and the plastic's own shine vary
+#: over the picture more than a quadratic holds).
+CONTRAST_SD_FLOOR = 0.03
+
+
+def scan_contrast(x_mm, y_mm, amp, width_mm, blur_mm, ok, amp_sd=None, track=None, s_mm=None):
+    """The plastic's contrast against the plate at every station (N,; intensity, > 0), read
+    on the scan's wide beads; the relative sd of a bead's true contrast about it; and how
+    many times the edge fits' own variance of the contrast (``amp_sd``, (N,)) its noise
+    is (>= 1; 1 without ``amp_sd``, ``track`` and ``s_mm``). None where fewer than 18
+    wide beads.
+
+    One plastic on one plate keeps one contrast, changed over the picture only by the
+    light (a gradient, vignetting: smooth): :func:`plate_surface`'s robust quadratic in bed
+    x, y through the contrast ``amp`` of the ``ok`` stations at least CONTRAST_WIDE_BLURS
+    blurs wide, where the edge pair tells A from w. The noise is read as the widths' is
+    (measure/station_sd.py :func:`~measure.station_sd.calibrated_sd`: second differences
+    along each track, which a contrast changing from bead to bead or over the bed does
+    not enter); what the wide beads' robust spread (1.4826 MAD) about the surface holds
+    beyond that noise is their true contrast's spread, at least CONTRAST_SD_FLOOR.
+    """
+    amp = np.asarray(amp, float)
+    wide = ok & np.isfinite(amp) & (amp > 0) & (np.asarray(width_mm, float) > CONTRAST_WIDE_BLURS * blur_mm)
+    if wide.sum() < 18:
+        return None
+    level = plate_surface(np.asarray(x_mm, float), np.asarray(y_mm, float), amp, wide)
+    if not np.all(np.isfinite(level[wide])) or np.any(level[wide] <= 0):
+        return None
+    r = amp[wide] / level[wide]
+    spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    over, noise = 1.0, 0.0
+    if amp_sd is not None and track is not None and s_mm is not None:
+        rel_sd = np.where(wide, np.asarray(amp_sd, float) / level, np.nan)
+        fine = wide & np.isfinite(rel_sd) & (rel_sd > 0)
+        if fine.sum() >= 18:
+            full, _, _ = calibrated_sd(np.asarray(track), np.asarray(s_mm, float), amp / level,
+                                       np.where(fine, rel_sd, np.nan), fine)
+            over = float(np.median((full[fine] / rel_sd[fine]) ** 2))
+            noise = float(np.median(full[fine]))
+    true_spread = np.sqrt(max(spread ** 2 - noise ** 2, 0.0))
+    return level, max(CONTRAST_SD_FLOOR, true_spread), over
+
+
+def _with_scan_contrast(t, y, fit, wts, smp: Samples, pol: float, rows):
+    """``fit`` (blur held) refitted at the ``rows`` with the plastic's contrast as a prior
+    (measure/edges.py fit_profiles ``amp_prior``; :func:`scan_contrast`): the MAP of the
+    edge pair given what the scan's wide beads say its contrast is; and the prior's lam
+    at every station (0 where not refitted).
+
+    Under ~3 blurs a bead shows its area A w better than A or w: a narrow bead that reads
+    10 % low in contrast reads ~10 % wide. On bench_realism's phone photo of dark beads on
+    the light plate (35 deg, direct drive, seed 3, blur 0.17 mm) the 0.25 mm beads' fitted
+    contrast scattered 37 % about the wide beads' and their width error 84 um with it
+    (correlation -0.86); the wide beads' contrast held the narrow ones' to 20 um.
+
+    The prior weighs against the profile as their errors do: lam = k rms^2 / (rel A_ref)^2,
+    rms^2 the profile's noise variance per sample, and k how much more the wide beads'
+    contrast scatters along their tracks than their fits' sds say (:func:`scan_contrast`):
+    a profile's samples share their errors (despeckled strips, JPEG blocks, plate grain), so
+    its sum of squares overstates what it knows of A (k 27 on that photo, 14 on the dark
+    plate's Bowden seed 3; with k = 1 the narrow beads' contrast kept 17 % of scatter and
+    their width error 61 um). k read from the contrast's whole spread about the surface
+    instead took the beads' own differences for noise: on the foreign printer's rendered
+    probe (bench/foreign_printer.py, a bowl-shaped bed under translucent beads: contrast
+    spread 54 %) k 299, and its beads under 0.5 mm read 17 um of scatter for 10.
+
+    Only beads under CONTRAST_WIDE_BLURS blurs are refitted: wider, the edge pair tells A
+    from w, and a bead's own contrast stands.
+    """
+    ok = rows & fit.ok & np.isfinite(fit.params[:, 4])
+    narrow = fit.width < CONTRAST_WIDE_BLURS * fit.params[:, 5]
+    got = scan_contrast(smp.x_mm, smp.y_mm, pol * fit.amplitude, fit.width, fit.params[:, 5], ok,
+                        amp_sd=fit.sd[:, 2], track=smp.track, s_mm=smp.s_mm)
+    lam_all = np.zeros(len(fit.rms))
+    if got is None:
+        return fit, lam_all
+    level, rel, over = got
+    idx = np.flatnonzero(ok & narrow & np.isfinite(level) & (level > 0) & (fit.rms > 0))
+    if not len(idx):
+        return fit, lam_all
+    lam = over * fit.rms[idx] ** 2 / (rel * level[idx]) ** 2
+    # started where the bead keeps the area it was read with at the scan's contrast: from
+    # the free fit, a narrow bead read at half its contrast could slide to "no bead" at
+    # the window's end (1 of 200 in a test)
+    start = fit.params[idx, :6].copy()
+    start[:, 4] *= np.clip(pol * start[:, 2] / level[idx], 0.5, 2.0)
+    start[:, 2] = pol * level[idx]
+    re = edges.fit_profiles(t[idx], y[idx], start, fixed_s=True, weights=wts[idx],
+                            amp_prior=(pol * level[idx], lam))
+    params, sd, rms, good = (a.copy() for a in (fit.params, fit.sd, fit.rms, fit.ok))
+    keep = idx[re.ok]
+    params[keep, :6], sd[keep, :6] = re.params[re.ok], re.sd[re.ok]
+    lam_all[keep] = lam[re.ok]
+    return edges.ProfileFit(params, sd, rms, good), lam_all
 
 
 def plate_surface(x_mm, y_mm, values, ok, passes: int = 4) -> np.ndarray:

@@ -108,7 +108,7 @@ def test_a_coarse_jpeg_gets_a_wider_sd_that_still_covers_its_errors(scan, monkey
     d, r = scan
     cv2.imwrite(str(d / "coarse.jpg"), r.image, [cv2.IMWRITE_JPEG_QUALITY, 15])
     # the warning's plumbing, with its threshold lowered to this render's scatter
-    monkeypatch.setattr(pipeline, "NOISY_SD_SCALE", 1.2)
+    monkeypatch.setattr(pipeline, "NOISY_SD_SCALE", 1.05)
     rc = main(["measure", str(d / "coarse.jpg"), "--manifest", str(d / "p.manifest.json"),
                "-o", str(d / "coarse.csv"), "--summary", str(d / "coarse.json")])
     assert rc == 0
@@ -117,8 +117,10 @@ def test_a_coarse_jpeg_gets_a_wider_sd_that_still_covers_its_errors(scan, monkey
     ok = tb.valid & (r.table.width_mm > 0)
     e = tb.width_mm[ok] - r.table.width_mm[ok]
     e = e - e.mean()
-    # JPEG 15's blocks: measured k 1.5 and f 4.7 um (1.0 and 0 on the PNG), 62 % within
-    assert s["station_sd"]["scale"] > 1.2
+    # JPEG 15's blocks: measured k 1.08 and f 3.8 um (1.0 and 0 on the PNG), 63 % within (k 1.5,
+    # f 4.7 um before the narrow beads took the scan's contrast: measure/widths.py
+    # _with_scan_contrast)
+    assert s["station_sd"]["scale"] > 1.05
     assert 0.55 <= np.mean(np.abs(e) <= tb.width_sd_mm[ok]) <= 0.85
     assert any("scatter along the tracks" in w for w in s["warnings"])
     # its 4:2:0 chroma does not matter: grey beads on a dark plate are measured in grey

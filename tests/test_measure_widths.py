@@ -388,16 +388,18 @@ def test_a_never_printed_line_on_a_light_grained_plate_is_missing_by_its_colour(
     # grey alone: grain spots pass for a bead between stations that saw none; the tip rule
     # (a station beside an absent one holds a bead's tip), the steep rule (a width that
     # jumps along the track) and the off-path rule (a "bead" that does not cover the path)
-    # leave few of them
+    # leave few of them (read with the contrast free: the plastic's contrast held on narrow
+    # "beads", measure/widths.py _with_scan_contrast, turns some into beads under a pixel)
     grey = measure_widths(g, man, reg, color=r.image).table
     assert grey.valid[gone].mean() < 0.05
     import measure.station_rules as sr
-    old = sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH
+    old = sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH, mw._with_scan_contrast
     sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH = 0.0, np.inf, np.inf
+    mw._with_scan_contrast = lambda t, y, fit, *a: (fit, np.zeros(len(fit.rms)))
     try:
         grey = measure_widths(g, man, reg, color=r.image).table
     finally:
-        sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH = old
+        sr.TIP_REACH_MM, sr.STEEP_SLOPE, mw.OFF_PATH, mw._with_scan_contrast = old
     assert grey.valid[gone].mean() > 0.1
 
 
@@ -1002,3 +1004,64 @@ def test_a_blob_where_the_head_stood_still_inside_a_line_is_flagged_not_read_as_
     assert np.max(np.abs(t.width_mm[ok] - vp.bead_width_mm[ok])) < 0.06
     under = test & (truth.width_mm > vp.bead_width_mm + 0.1)
     assert under.sum() >= 15 and not t.valid[under].any()
+
+
+def test_scan_contrast_is_the_wide_beads_surface_and_says_how_much_their_fits_overstate():
+    """measure.widths.scan_contrast: the plastic's contrast under a light gradient, read on
+    the beads >= 4 blurs wide only (a narrow bead's contrast trades with its width), as a
+    quadratic over the bed; the noise along each track against the fits' own sd (k = 25:
+    sds 5x small), and the true contrast's spread beyond that noise (beads 4 % apart, one
+    track from the next), floored at CONTRAST_SD_FLOOR."""
+    from measure.widths import CONTRAST_SD_FLOOR, scan_contrast
+    rng = np.random.default_rng(5)
+    n_tracks, per = 20, 200
+    track = np.repeat(np.arange(n_tracks), per)
+    s_mm = np.tile(np.arange(per) * 0.25, n_tracks)
+    x = s_mm * 1.6
+    y = track * 2.5
+    light = 0.40 * (1 + 0.004 * (x - 40) - 0.003 * (y - 25))
+    wide_bead = (s_mm // 10) % 2 == 0                  # 10 mm of 1.2 mm bead, then 10 of 0.25 mm
+    width = np.where(wide_bead, 1.2, 0.25)
+    blur = np.full(len(x), 0.15)
+    own = rng.normal(0, 0.04, n_tracks)[track]          # each track's plastic a little apart
+    amp = light * (1 + own + rng.normal(0, 0.05, len(x)))
+    amp[~wide_bead] *= rng.uniform(0.4, 1.6, (~wide_bead).sum())      # the narrow beads' trade
+    ok = np.ones(len(x), bool)
+    level, rel, over = scan_contrast(x, y, amp, width, blur, ok, amp_sd=0.01 * light, track=track, s_mm=s_mm)
+    assert np.max(np.abs(level / light - 1)) < 0.05            # 20 tracks of 4 % each: their mean bends it
+    assert over == pytest.approx(25, rel=0.25)
+    assert rel == pytest.approx(0.04, abs=0.015)
+    _, rel_plain, over_plain = scan_contrast(x, y, amp, width, blur, ok)
+    assert over_plain == 1.0 and rel_plain == pytest.approx(0.064, abs=0.01)      # noise and spread as one
+    _, rel_quiet, _ = scan_contrast(x, y, light, width, blur, ok)
+    assert rel_quiet == CONTRAST_SD_FLOOR
+    assert scan_contrast(x, y, amp, np.full(len(x), 0.25), blur, ok) is None
+
+
+def test_under_a_blur_wider_than_half_the_bead_its_width_is_read_with_the_scans_contrast(monkeypatch):
+    """A photo blurred to 0.6 of the narrowest bead's width: its 0.25 mm beads show their
+    area A w better than either, and read with their contrast free they scatter with it.
+    With the contrast the wide beads show (measure.widths._with_scan_contrast) they scatter
+    at least 2x less, and their mean error lies at least 2x closer to the wide beads' (the
+    offset the width reference takes; seed 4: +31 -> -11 um against +1, sd 25 -> 8 um)."""
+    import measure.widths as mw
+    from measure.camera import Camera
+    from measure.render import render
+    man = scene_manifest()
+    cam = Camera.phone(scene_region(man), image_size=(2000, 1500), tilt_deg=25, yaw_deg=5, k1=-0.06, k2=0.01)
+    r = render(man, None, cam, seed=4, jpeg_quality=85, blur_px=3.5)
+    g = gray_of(r)
+    reg = register(g, man)
+    with_prior = measure_widths(g, man, reg, color=r.image).table
+    monkeypatch.setattr(mw, "_with_scan_contrast", lambda t, y, fit, *a: (fit, np.zeros(len(fit.rms))))
+    free = measure_widths(g, man, reg, color=r.image).table
+    truth = r.table.width_mm
+
+    def errors(tb, narrow):
+        on = tb.valid & ((truth < 0.3) if narrow else (truth > 0.7))
+        return (tb.width_mm - truth)[on]
+    e_free, e_prior = errors(free, True), errors(with_prior, True)
+    assert len(e_prior) > 0.9 * (r.table.width_mm < 0.3).sum() * with_prior.valid.mean()
+    assert np.std(e_prior) < 0.5 * np.std(e_free)
+    wide = np.mean(errors(with_prior, False))
+    assert abs(np.mean(e_prior) - wide) < 0.5 * abs(np.mean(e_free) - wide)
