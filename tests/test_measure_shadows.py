@@ -229,3 +229,28 @@ def test_a_shadow_blurred_over_is_said_and_the_headings_levelled(tmp_path):
     ok = res.table.valid & (r.table.width_mm > 0)
     err = res.table.width_mm[ok] - r.table.width_mm[ok]
     assert ok.mean() > 0.9 and np.std(err) < 0.010
+
+
+def test_a_large_scan_without_shadows_stops_at_a_quarter_of_the_screen(monkeypatch):
+    """Screened on one station in eight, a scan looks at a quarter of those first
+    (SHADOW_PRESCREEN_SHARE): without a shadow next to none of them takes a shelf and the
+    rest of the screen is not fitted (its fits were a third of a 12 MP photo's time); with
+    one, the screen and the full test run as before and find the lamp."""
+    import measure.shadows as sh_mod
+    seen = []
+    orig = sh_mod._shelf_test
+
+    def counting(t, y, fit, wts, normals, reach, idx, *a, **k):
+        seen.append(len(idx))
+        return orig(t, y, fit, wts, normals, reach, idx, *a, **k)
+    monkeypatch.setattr(sh_mod, "_shelf_test", counting)
+    monkeypatch.setattr(sh_mod, "SHADOW_PRESCREEN_MIN", 20)      # a smaller scan, the same rule
+    n = 4 * sh_mod.SHADOW_SCREEN_EVERY * sh_mod.SHADOW_PRESCREEN_MIN + 40
+    t, y, fit, normals, widths = _stations(n, np.random.default_rng(6), shadow=False)
+    out, sh = with_shadows(t, y, fit, np.ones_like(y), 0.2, normals)
+    assert not sh.any and seen == [len(range(0, n, sh_mod.SHADOW_SCREEN_EVERY * 4))]
+    seen.clear()
+    t, y, fit, normals, widths = _stations(n, np.random.default_rng(7))
+    out, sh = with_shadows(t, y, fit, np.ones_like(y), 0.2, normals)
+    assert len(seen) >= 3 and seen[1] == len(range(0, n, sh_mod.SHADOW_SCREEN_EVERY))
+    assert sh.away is not None and sh.away @ np.array([0.0, 1.0]) > 0.98
