@@ -26,7 +26,10 @@ by more than MIN_GAIN over grey (white or grey plastic on a neutral plate gains 
 and it is used only when the widths measured on it scatter less (:func:`width_noise`)
 and read like grey's but for a constant (:func:`width_disagreement`): a JPEG stores
 colour at half resolution (4:2:0), which blurs and rings a chroma-weighted image more
-than the grey one.
+than the grey one. Below MIN_GAIN the same trial runs after grey's widths are measured,
+where they turned out loose (:func:`retry_in_colour`): dark plastic on the light grained
+plate under a phone gains 1.5x in contrast and its widths scattered 36 um in grey, 28 in
+colour (bench_realism seed 0: 34.5 -> 27.6 um RMS after the fit's offset).
 
 Colour at half resolution. A projection is luminance plus colour: every BGR channel is
 Y plus chroma terms, so (1) applied to a picture is (sum w) Y + c(u, v) with c the chroma
@@ -46,6 +49,7 @@ picture (2) would only cost sharpness: it is applied to subsampled JPEGs only.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 
@@ -61,6 +65,15 @@ from patterns.manifest import Manifest, sample_points
 MIN_GAIN = 2.0
 #: ... and then only when the widths measured on it scatter this many times less.
 MIN_NOISE_GAIN = 1.25
+#: Under MIN_GAIN the trial runs after grey's widths are measured, where they turned out
+#: loose: their stations' median sd at least RETRY_SD_MM (a phone's dark plate 5 um, a
+#: flatbed's 2-4; the light grained plate under a phone 27-31 um) and the projection's
+#: gain at least RETRY_MIN_GAIN. The scatter falls by less than the contrast rises (a
+#: phone's halved chroma): a gain of 1.5 cut it 1.30x (35 -> 27 um, the light plate under
+#: a phone), one of 1.26 raised it (realdata SpStartStopTest2: 31 -> 39 um, a trial of
+#: ~10 s for nothing on its 12 MP photo).
+RETRY_MIN_GAIN = 1.4
+RETRY_SD_MM = 0.015
 #: ... and when the widths it reads differ from grey's by no more than this (mm) between
 #: the commanded widths (:func:`width_disagreement`). A 4:2:0 JPEG's plain projection of a
 #: grained light plate scattered 12.7 um against grey's 17.3 but read the 0.25 mm beads
@@ -124,6 +137,10 @@ class Channel:
     valid_color: float = float("nan")
     chroma_restored: bool = False
     width_disagreement_mm: float = float("nan")
+    #: medians of grey on beads and on plate (the projection is rescaled to them)
+    gray_levels: tuple = (float("nan"), float("nan"))
+    #: the trial ran after grey's widths were measured (:func:`retry_in_colour`)
+    retried: bool = False
 
     def to_dict(self) -> dict:
         return {"channel": "colour discriminant" if self.used else "grey",
@@ -133,7 +150,8 @@ class Channel:
                 "width_noise_um_grey": _finite(self.noise_gray_mm * 1e3),
                 "width_noise_um_colour": _finite(self.noise_color_mm * 1e3),
                 "width_disagreement_um": _finite(self.width_disagreement_mm * 1e3),
-                "chroma_restored": bool(self.chroma_restored)}
+                "chroma_restored": bool(self.chroma_restored),
+                "tried_after_grey": bool(self.retried)}
 
 
 def _finite(v):
@@ -189,10 +207,43 @@ def bead_channel(gray, color, manifest: Manifest, registration, *, ds_mm: float 
     wts = np.linalg.solve(S, mb - mp)
     cnr_c = _cnr(cb @ wts, cp @ wts)
     pb, pp = float(np.median(cb @ wts)), float(np.median(cp @ wts))
-    ch = Channel(wts, cnr_g, cnr_c, False, plate_level=pp, bead_level=pb)
+    ch = Channel(wts, cnr_g, cnr_c, False, plate_level=pp, bead_level=pb,
+                 gray_levels=(float(np.median(gb)), float(np.median(gp))))
     if not cnr_c > MIN_GAIN * cnr_g:
         return gray, ch
-    gbm, gpm = float(np.median(gb)), float(np.median(gp))
+    return _trial(gray, color, manifest, registration, ch, chroma_halved)
+
+
+def retry_in_colour(gray, color, manifest: Manifest, registration, channel: "Channel", table,
+                    chroma_halved: bool = False):
+    """(image, Channel) of the colour trial run after grey was kept, or None.
+
+    Below MIN_GAIN the trial is not worth its cost where grey's widths are tight; where
+    they are not it is: the widths ``table`` (measure.table.WidthTable) measured on grey
+    have a median station sd (``width_sd_mm``, the station's whole error) of at least
+    RETRY_SD_MM and the projection raised the contrast-to-noise ratio RETRY_MIN_GAIN
+    times. Then the same trial as :func:`bead_channel`'s decides (scatter, valid share,
+    the widths' agreement with grey's). Dark plastic on the light grained plate under a
+    phone (bench_realism, seed 0: gain 1.5, stations' sd 27-31 um in grey) scattered 36 um
+    in grey and 28 in colour."""
+    ch = channel
+    if (ch.used or ch.weights is None or np.isfinite(ch.noise_color_mm)     # tried already
+            or not ch.cnr_color > RETRY_MIN_GAIN * ch.cnr_gray):
+        return None
+    ok = np.asarray(table.valid, bool)
+    if ok.sum() < 30 or not np.median(np.asarray(table.width_sd_mm, float)[ok]) >= RETRY_SD_MM:
+        return None
+    ch = dataclasses.replace(ch, retried=True)
+    img, ch = _trial(gray, color, manifest, registration, ch, chroma_halved)
+    return img, ch
+
+
+def _trial(gray, color, manifest: Manifest, registration, ch: "Channel", chroma_halved: bool):
+    """(image, Channel): the projection ``ch.weights`` built and measured against grey
+    (:func:`bead_channel`'s trial); grey where it does not pay."""
+    wts = np.asarray(ch.weights, np.float64)
+    pp, pb = ch.plate_level, ch.bead_level
+    gbm, gpm = ch.gray_levels
     # the projection is only built (a 12 MP float copy) once colour is a candidate
     proj = (color.astype(np.float32) / np.float32(255.0)) @ wts.astype(np.float32)
     if chroma_halved:

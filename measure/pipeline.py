@@ -78,8 +78,9 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
     reg = _register(luma, manifest, points)
     # widths are measured on the channel that best tells bead from plate (grey unless a
     # coloured bead on a grained plate separates much better in colour: measure/contrast.py)
-    from measure.contrast import bead_channel
-    gray, channel = bead_channel(luma, color, manifest, reg, chroma_halved=jpeg_chroma_subsampled(image_path))
+    from measure.contrast import bead_channel, retry_in_colour
+    halved = jpeg_chroma_subsampled(image_path)
+    gray, channel = bead_channel(luma, color, manifest, reg, chroma_halved=halved)
     if reg.method.startswith("auto"):
         # the automatic pose is refined once more on the bead centres it measures (ICP;
         # with stations every 1 mm instead of 0.25 mm the flatbed render's pose was 30x
@@ -93,6 +94,12 @@ def measure_scan(image_path, manifest, points=None, overlay_path=None, *,
         reg = refine_with_centres(reg, t.x_mm, t.y_mm, m0.nx, m0.ny, m0.centre_mm, t.valid, t.track)
         reg.info["time_s"] = reg.info.get("time_s", 0.0) + time.perf_counter() - t0
     meas = measure_widths(gray, manifest, reg, color=color, colour_axis=channel)
+    # grey's widths turned out loose: the colour trial the contrast alone did not call for
+    retry = retry_in_colour(luma, color, manifest, reg, channel, meas.table, chroma_halved=halved)
+    if retry is not None:
+        gray, channel = retry
+        if channel.used:
+            meas = measure_widths(gray, manifest, reg, color=color, colour_axis=channel)
     table = meas.table
     # the blur each width was read with: the apparent width of a rounded bead depends on it
     # (fit/effects.py ViewBlur)

@@ -1,4 +1,6 @@
 """Width accuracy, honest uncertainty and flags on renders with known widths."""
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -263,6 +265,44 @@ def test_a_coloured_bead_on_a_grained_light_plate_is_measured_in_colour(seed, co
         assert grey > 0.012 and colour < 0.4 * grey
     else:
         assert img is g
+
+
+def test_colour_is_tried_after_grey_where_grey_reads_loose(monkeypatch):
+    """measure/contrast.py retry_in_colour: under MIN_GAIN the colour trial runs only after
+    grey's widths turned out loose (their stations' median sd >= RETRY_SD_MM), and then
+    decides as bead_channel's own trial does. Here the gate is moved so that this red
+    bead on the grained light plate (seed 1: colour gains 3.7x, grey's stations' sd ~11
+    um) is kept grey at first: with grey's widths counted tight nothing is retried; counted
+    loose the trial runs and the colour widths are kept, several times tighter; a trial that
+    already ran is not repeated."""
+    from measure import contrast
+    from measure.camera import Camera
+    from measure.render import render
+    man = scene_manifest()
+    r = render(man, None, Camera.flatbed(scene_region(man), dpi=400), seed=1, plate="light", realism="grain")
+    g = gray_of(r)
+    reg = register(g, man)
+    monkeypatch.setattr(contrast, "MIN_GAIN", 10.0)
+    img, ch = contrast.bead_channel(g, r.image, man, reg)
+    assert img is g and not ch.used and ch.cnr_color > contrast.RETRY_MIN_GAIN * ch.cnr_gray
+    grey = measure_widths(g, man, reg, color=r.image).table
+    sd = float(np.median(grey.width_sd_mm[grey.valid]))
+    monkeypatch.setattr(contrast, "RETRY_SD_MM", 1.2 * sd)
+    assert contrast.retry_in_colour(g, r.image, man, reg, ch, grey) is None
+    monkeypatch.setattr(contrast, "RETRY_SD_MM", 0.8 * sd)
+    img2, ch2 = contrast.retry_in_colour(g, r.image, man, reg, ch, grey)
+    assert ch2.used and ch2.retried and ch2.to_dict()["tried_after_grey"] and not ch.retried
+    assert ch2.noise_color_mm < ch2.noise_gray_mm / contrast.MIN_NOISE_GAIN
+    colour = measure_widths(img2, man, reg, color=r.image, colour_axis=ch2).table
+
+    def rms(tb):
+        assert tb.valid.mean() > 0.95
+        return np.sqrt(np.mean((tb.width_mm - r.table.width_mm)[tb.valid] ** 2))
+
+    assert rms(colour) < 0.5 * rms(grey)
+    assert contrast.retry_in_colour(g, r.image, man, reg, ch2, grey) is None       # used already
+    tried = dataclasses.replace(ch2, used=False)
+    assert contrast.retry_in_colour(g, r.image, man, reg, tried, grey) is None     # its trial ran
 
 
 def test_half_resolution_jpeg_colour_is_restored_before_the_widths_use_it(tmp_path):
