@@ -8,6 +8,9 @@ cause.
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 from pathlib import Path
 
 import cv2
@@ -26,14 +29,36 @@ _BLANK_SPREAD = 0.02
 
 def _quiet_imdecode(buf, flags):
     """cv2.imdecode without OpenCV's own WARN/ERROR lines on stderr: a corrupt file must
-    give the user our one-line error, not decoder chatter."""
+    give the user our one-line error, not decoder chatter. libpng writes its errors
+    ("libpng error: PNG input buffer is incomplete") to file descriptor 2 itself, past
+    OpenCV's log level, so that descriptor points at /dev/null while the decoder runs."""
     log = cv2.utils.logging
     level = log.getLogLevel()
     log.setLogLevel(log.LOG_LEVEL_SILENT)
     try:
-        return cv2.imdecode(buf, flags)
+        with _stderr_fd_silenced():
+            return cv2.imdecode(buf, flags)
     finally:
         log.setLogLevel(level)
+
+
+@contextlib.contextmanager
+def _stderr_fd_silenced():
+    """Point file descriptor 2 at /dev/null for the block (C libraries' own messages);
+    Python's sys.stderr is flushed first so nothing written before is lost."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield                       # no descriptor 2 to silence (embedded interpreters)
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def sniff_format(head: bytes) -> str | None:

@@ -57,3 +57,19 @@ def test_blank_and_missing_images(tmp_path):
         load_image(tmp_path / "blank.png")
     with pytest.raises(UserError, match="does not exist"):
         load_image(tmp_path / "nope.png")
+
+
+def test_a_truncated_png_says_one_line_and_the_decoder_nothing(tmp_path, capfd):
+    """libpng prints "libpng error: ..." on descriptor 2 past OpenCV's log level; the user
+    must see our line only. The decoder is quiet only while it runs: descriptor 2 works
+    again after the error."""
+    noise = (np.random.default_rng(0).random((200, 300, 3)) * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "s.png"), noise)               # incompressible: many IDAT bytes
+    data = (tmp_path / "s.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[:len(data) // 2])
+    with pytest.raises(UserError, match="is a corrupt or truncated PNG file"):
+        load_image(tmp_path / "cut.png")
+    import os
+    os.write(2, b"after\n")
+    err = capfd.readouterr().err
+    assert "libpng" not in err and err == "after\n"
