@@ -48,8 +48,10 @@ APRILTAG_OFFSET_PX = 0.5
 
 
 class FiducialsNotFound(UserError):
-    """Fewer than two of the manifest's fiducials were found (the caller may fall back to
-    the automatic registration, measure.autoreg)."""
+    """Fewer than two of the manifest's fiducials were found, or those found do not fit one
+    plane mapping (markers of the same ids where another pattern puts them): the caller may
+    fall back to the automatic registration (measure.autoreg), which places the tracks
+    themselves or refuses with the QA overlay of its best pose."""
 
 
 @dataclass
@@ -512,8 +514,9 @@ def register(image, manifest, points=None, *, refine: bool = True,
             H0, inl = _undistorted_homography(bed_pts, img_pts, center, f_px, 0, 0, ransac=True,
                                               threshold_px=max(RANSAC_PX, 0.06 * side))
         if H0 is None or inl.sum() < 8:
-            raise UserError("the fiducials found do not fit one plane mapping; "
-                            "photograph the print flat and whole, or give --points")
+            raise FiducialsNotFound(f"the {len(used)} fiducials found do not fit one plane mapping (a picture "
+                                    "of another pattern, or of a print not lying flat?): photograph the print "
+                                    "flat and whole, or give --points")
         bed_pts, img_pts, ctr_pts = bed_pts[inl], img_pts[inl], ctr_pts[inl]
         # misfit of a pure homography (plus marker bleed) decides whether the lens distorts
         rms0 = _corner_fit(H0, size, bed_pts, img_pts, ctr_pts)

@@ -52,6 +52,24 @@ def _run_bad(d, scan_name, capsys, *extra, manifest="p.manifest.json"):
     return err
 
 
+def test_markers_where_another_pattern_puts_them_fall_back_and_refuse_with_the_overlay(scan, capsys):
+    """The same marker ids at other places (a picture of another of our patterns): no one
+    plane mapping fits them, so the automatic pose is tried from the tracks; it finds no
+    match either, and the refusal is one line, exit 2, no CSV, and the overlay of its best
+    pose that shows why."""
+    d, _ = scan
+    moved = scene_manifest()
+    for f, shift in zip(moved.fiducials, [(0, 0), (25, 0), (0, 25), (-25, -25)]):
+        f.corners_mm = (np.asarray(f.corners_mm, float) + shift).tolist()
+        f.center_mm = tuple(np.asarray(f.center_mm, float) + shift)
+    for t in moved.tracks:                  # and its tracks elsewhere too: another pattern
+        t.points_mm = np.asarray(t.points_mm, float)[:, ::-1] * [0.6, 1.0] + [10.0, 0.0]
+    moved.save(d / "moved.manifest.json")
+    msg = _run_bad(d, "scan.png", capsys, "--overlay", str(d / "moved_qa.png"), manifest="moved.manifest.json")
+    assert "fiducials found do not fit one plane mapping" in msg and "automatic registration" in msg
+    assert (d / "moved_qa.png").is_file()
+
+
 def test_bad_inputs_exit_2_with_one_line_and_no_csv(scan, capsys):
     d, r = scan
     (d / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0" + b"\x00" * 100)
