@@ -131,11 +131,14 @@ def write_json(path, doc, indent: int = 1) -> Path:
     return atomic_write_text(path, json.dumps(doc, indent=indent, default=json_default, allow_nan=True))
 
 
-def read_json_doc(path, schema_prefix: str, kind: str, make_hint: str) -> dict:
+def read_json_doc(path, schema_prefix: str, kind: str, make_hint: str,
+                  near: dict[str, str] | None = None) -> dict:
     """Read a calib JSON file whose ``schema`` starts with ``schema_prefix``.
 
     Every failure is one UserError line: missing file, unreadable JSON, or a JSON file of
-    another kind (``make_hint`` says how to make the right one, e.g. "run `calib fit`").
+    another kind (``make_hint`` says how to make the right one, e.g. "run `calib fit`";
+    ``near`` maps the schema prefix of a kind a user may mistake for this one to what to
+    say of it instead).
     """
     import json
 
@@ -148,7 +151,11 @@ def read_json_doc(path, schema_prefix: str, kind: str, make_hint: str) -> dict:
         raise UserError(f"{kind} file {path} does not exist; {make_hint}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise UserError(f"{path} is not a readable {kind} JSON file ({exc})") from None
-    if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith(schema_prefix):
+    schema = str(doc.get("schema", "")) if isinstance(doc, dict) else ""
+    for prefix, said in (near or {}).items():
+        if schema.startswith(prefix):
+            raise UserError(f"{path} {said}")
+    if not isinstance(doc, dict) or not schema.startswith(schema_prefix):
         want = f"'schema: {schema_prefix}N'" if schema_prefix.endswith("/") else "calib 'schema'"
         raise UserError(f"{path} is not a calib {kind} file (no {want} key); {make_hint}")
     return doc

@@ -182,7 +182,10 @@ def load_fit_json(path) -> dict:
     """Read ``fit.json`` as a dict (checked schema); ``samples`` as an array."""
     from calib.errors import UserError
 
-    doc = read_json_doc(path, "calib.fit/", "fit", "run `calib fit` first")
+    doc = read_json_doc(path, "calib.fit/", "fit", "run `calib fit` first",
+                        near={"calib.fit-map/": "is a MAP-only fit (`calib fit --map-only`): a best value "
+                              "without its interval, which cannot be judged or exported; run `calib fit` "
+                              "without --map-only"})
     env = doc.get("envelope_samples")
     try:
         doc["samples"] = np.asarray(doc.get("samples", []), dtype=float)

@@ -92,6 +92,18 @@ def test_a_fit_json_with_draws_that_are_not_numbers_is_one_line(tmp_path, capsys
     assert len(err) == 1 and "not a table of numbers" in err[0]
 
 
+def test_export_of_a_map_only_fit_says_what_it_is(tmp_path, capsys):
+    """`calib fit --map-only -o fit.json` writes schema calib.fit-map/1; `calib export` said
+    "not a calib fit file; run `calib fit` first" to a user who had just run it."""
+    import json
+
+    p = tmp_path / "fit.json"
+    p.write_text(json.dumps({"schema": "calib.fit-map/1", "model": "pa", "theta": {"pa.tau_s": 0.04}}))
+    assert main(["export", str(p), "--to", "klipper"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a MAP-only fit" in err[0] and "without --map-only" in err[0]
+
+
 @pytest.mark.parametrize("flag, content, said", [
     ("--fit", b"\xff\xfe\x00not text", "not a readable fit JSON file"),
     ("--compare", b'{"a": 1}', "not a calib compare file"),
